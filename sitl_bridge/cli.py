@@ -1,0 +1,63 @@
+"""The `sitl-bridge` command line.
+
+Each subcommand lives in its own module under `sitl_bridge.commands` and exposes
+`register(subparsers)`, which adds its parser and sets `func` (called with the parsed args,
+returning an exit code). This file only wires them together.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import logging
+import sys
+
+# Order here is the order in `--help`.
+COMMAND_MODULES = (
+    "run",
+    "stub",
+    "worlds",
+    "bench",
+    "train",
+    "eval",
+    "lr_probe",
+    "curriculum",
+    "plot",
+    "rules",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the top-level parser with every available subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="sitl-bridge",
+        description="Lockstep drone simulator, PX4-compatible autopilot stub, RL environments.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug)")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        module_name = f"sitl_bridge.commands.{name}"
+        if importlib.util.find_spec(module_name) is None:
+            continue
+        importlib.import_module(module_name).register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `sitl-bridge` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,163 @@
+"""Configuration errors with one clear line: which file, which key path, what was expected.
+
+Every reader of user configuration (worlds, scenario tasks, trainer settings) validates through
+`Node`, so that a bad file always fails as
+`worlds/window.yaml: world.obstacles[2].size: expected 3 positive numbers, got [1, 2]`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+
+_MISSING = object()
+
+
+class ConfigError(ValueError):
+    """A configuration file is wrong; the message is one line naming file, key path and problem."""
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value) if not isinstance(value, (list, dict)) else yaml.safe_dump(
+        value, default_flow_style=True, width=10_000
+    ).strip()
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+class Node:
+    """A value inside a config file, remembering where it came from (file and key path)."""
+
+    def __init__(self, value: Any, source: str, path: str = "") -> None:
+        self.value = value
+        self.source = source
+        self.path = path
+
+    # -- errors -----------------------------------------------------------------------
+    def error(self, expected: str, got: Any = _MISSING) -> ConfigError:
+        """A ConfigError for this node: `source: path: expected X, got Y`."""
+        got_value = self.value if got is _MISSING else got
+        where = f"{self.source}: {self.path or '<top>'}"
+        return ConfigError(f"{where}: expected {expected}, got {_short(got_value)}")
+
+    # -- navigation ---------------------------------------------------------------------
+    def _child_path(self, key: str | int) -> str:
+        if isinstance(key, int):
+            return f"{self.path}[{key}]"
+        return f"{self.path}.{key}" if self.path else str(key)
+
+    def mapping(self) -> Mapping[str, Any]:
+        if not isinstance(self.value, Mapping):
+            raise self.error("a mapping")
+        return self.value
+
+    def has(self, key: str) -> bool:
+        return isinstance(self.value, Mapping) and key in self.value
+
+    def get(self, key: str, default: Any = _MISSING) -> Node:
+        """Child node `key`; a missing key without default is an error naming the key."""
+        mapping = self.mapping()
+        if key in mapping:
+            return Node(mapping[key], self.source, self._child_path(key))
+        if default is _MISSING:
+            child = Node(None, self.source, self._child_path(key))
+            raise ConfigError(f"{self.source}: {child.path}: required key is missing")
+        return Node(default, self.source, self._child_path(key))
+
+    def items(self) -> Iterator[tuple[str, Node]]:
+        for key in self.mapping():
+            yield key, Node(self.mapping()[key], self.source, self._child_path(key))
+
+    def list(self, *, min_len: int = 0) -> list[Node]:
+        if not isinstance(self.value, list) or len(self.value) < min_len:
+            raise self.error(f"a list of at least {min_len} items" if min_len else "a list")
+        return [Node(v, self.source, self._child_path(i)) for i, v in enumerate(self.value)]
+
+    def reject_unknown(self, allowed: set[str] | frozenset[str]) -> None:
+        """Fail on keys that are not in `allowed` (catches typos such as `sise:`)."""
+        for key in self.mapping():
+            if key not in allowed:
+                child = self._child_path(key)
+                raise ConfigError(
+                    f"{self.source}: {child}: unknown key (expected one of {', '.join(sorted(allowed))})"
+                )
+
+    # -- typed readers ------------------------------------------------------------------
+    def number(self, *, positive: bool = False, non_negative: bool = False,
+               minimum: float | None = None, maximum: float | None = None) -> float:
+        v = self.value
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and v == v
+        ok = ok and (not positive or v > 0) and (not non_negative or v >= 0)
+        ok = ok and (minimum is None or v >= minimum) and (maximum is None or v <= maximum)
+        if not ok:
+            raise self.error(_describe_number(positive, non_negative, minimum, maximum))
+        return float(v)
+
+    def integer(self, *, minimum: int | None = None, maximum: int | None = None) -> int:
+        v = self.value
+        ok = isinstance(v, int) and not isinstance(v, bool)
+        ok = ok and (minimum is None or v >= minimum) and (maximum is None or v <= maximum)
+        if not ok:
+            bounds = "" if minimum is None else f" >= {minimum}"
+            bounds += "" if maximum is None else f" <= {maximum}"
+            raise self.error(f"an integer{bounds}")
+        return int(v)
+
+    def boolean(self) -> bool:
+        if not isinstance(self.value, bool):
+            raise self.error("true or false")
+        return self.value
+
+    def string(self, choices: tuple[str, ...] | None = None) -> str:
+        if not isinstance(self.value, str) or (choices and self.value not in choices):
+            raise self.error(f"one of {', '.join(choices)}" if choices else "a string")
+        return self.value
+
+    def vector(self, length: int = 3, *, positive: bool = False, non_negative: bool = False) -> tuple[float, ...]:
+        v = self.value
+        ok = isinstance(v, list) and len(v) == length and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and x == x for x in v
+        )
+        ok = ok and (not positive or all(x > 0 for x in v))
+        ok = ok and (not non_negative or all(x >= 0 for x in v))
+        if not ok:
+            kind = "positive numbers" if positive else "non-negative numbers" if non_negative else "numbers"
+            raise self.error(f"{length} {kind}")
+        return tuple(float(x) for x in v)
+
+    def convert(self, parse: Callable[[Node], T]) -> T:
+        return parse(self)
+
+
+def _describe_number(positive: bool, non_negative: bool, minimum: float | None, maximum: float | None) -> str:
+    if positive:
+        return "a positive number"
+    if non_negative:
+        return "a non-negative number"
+    parts = ["a number"]
+    if minimum is not None:
+        parts.append(f">= {minimum}")
+    if maximum is not None:
+        parts.append(f"<= {maximum}")
+    return " ".join(parts)
+
+
+def load_yaml(path: str | Path) -> Node:
+    """Read a YAML file safely into a root Node; unreadable or malformed files are ConfigErrors."""
+    source = str(path)
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise ConfigError(f"{source}: cannot read file ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or "malformed YAML"
+        raise ConfigError(f"{source}: invalid YAML{where}: {problem}") from None
+    return Node(data, source)
