@@ -1,20 +1,54 @@
-"""The one place that imports pymavlink.
+"""The one place that imports pymavlink, plus fast MAVLink 2 framing for the hot paths.
 
 pymavlink picks its dialect from the environment at import time; importing the MAVLink 2
 `common` dialect module directly pins MAVLink 2 for the whole package. Everything else imports
 `dialect` (messages, enums, CRCs) and `new_codec` from here.
+
+The simulator link sends three messages and receives one per 4 ms step and vehicle, so it
+does not go through pymavlink's per-message objects: `FrameEncoder` packs a payload with the
+message's precompiled `struct` and frames it (MAVLink 2, trailing-zero truncation, CRC with
+the message's CRC_EXTRA); `FrameParser` splits a TCP byte stream into checked frames, counting
+garbage bytes and CRC failures instead of raising. Rare messages are still decoded by
+pymavlink (`decode_frame`).
 """
 
 from __future__ import annotations
 
+import binascii
+import dataclasses
 import os
+import re
+import struct
+from dataclasses import dataclass
+from typing import NamedTuple
 
 os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink.dialects.v20 import common as dialect  # noqa: E402
+from pymavlink.generator import mavcrc  # noqa: E402
 
 MAVLink = dialect.MAVLink
 MAVLinkMessage = dialect.MAVLink_message
+
+MAVLINK2_MAGIC = 0xFD
+MAVLINK1_MAGIC = 0xFE
+MAVLINK2_HEADER_LEN = 10
+MAVLINK1_HEADER_LEN = 6
+MAVLINK_IFLAG_SIGNED = 0x01
+MAVLINK_SIGNATURE_LEN = 13
+_HEADER2 = struct.Struct("<BBBBBBBHB")  # magic len incompat compat seq sys comp msgid(24 bit)
+_HEADER1 = struct.Struct("<BBBBBB")  # magic len seq sys comp msgid
+_CRC_EXTRA_BYTES = [bytes((i,)) for i in range(256)]
+
+# Message ids used by the simulator protocol (PX4 SimulatorMavlink).
+HEARTBEAT = dialect.MAVLINK_MSG_ID_HEARTBEAT
+COMMAND_LONG = dialect.MAVLINK_MSG_ID_COMMAND_LONG
+HIL_ACTUATOR_CONTROLS = dialect.MAVLINK_MSG_ID_HIL_ACTUATOR_CONTROLS
+HIL_SENSOR = dialect.MAVLINK_MSG_ID_HIL_SENSOR
+HIL_GPS = dialect.MAVLINK_MSG_ID_HIL_GPS
+HIL_STATE_QUATERNION = dialect.MAVLINK_MSG_ID_HIL_STATE_QUATERNION
+MAV_CMD_SET_MESSAGE_INTERVAL = dialect.MAV_CMD_SET_MESSAGE_INTERVAL
+MAV_MODE_FLAG_SAFETY_ARMED = dialect.MAV_MODE_FLAG_SAFETY_ARMED
 
 
 class _NullFile:
@@ -29,3 +63,208 @@ def new_codec(system_id: int, component_id: int) -> dialect.MAVLink:
     codec = dialect.MAVLink(_NullFile(), srcSystem=system_id, srcComponent=component_id)
     codec.robust_parsing = True
     return codec
+
+
+# -- CRC-16/MCRF4XX (MAVLink's "x25") ---------------------------------------------------------
+_BIT_REVERSED = bytes(int(f"{i:08b}"[::-1], 2) for i in range(256))
+
+
+def _crc_binascii(data: bytes, crc: int = 0xFFFF) -> int:
+    """MCRF4XX is the bit-reflected CCITT CRC: reflect the input bytes, run binascii's
+    (C) CCITT CRC, reflect the result. Used when pymavlink has no native CRC."""
+    crc = (_BIT_REVERSED[crc & 0xFF] << 8) | _BIT_REVERSED[crc >> 8]
+    out = binascii.crc_hqx(bytes(data).translate(_BIT_REVERSED), crc)
+    return (_BIT_REVERSED[out & 0xFF] << 8) | _BIT_REVERSED[out >> 8]
+
+
+crc_mcrf4xx = mavcrc.mcrf4xx if getattr(mavcrc, "mcrf4xx", None) else _crc_binascii
+"""crc_mcrf4xx(data, crc=0xFFFF) -> int: the MAVLink checksum (native when available)."""
+
+
+def message_class(msgid: int) -> type[MAVLinkMessage] | None:
+    """The dialect's message class for `msgid`, or None when the dialect does not know it."""
+    return dialect.mavlink_map.get(msgid)
+
+
+# -- encoding ---------------------------------------------------------------------------------
+class FrameEncoder:
+    """Packs MAVLink 2 frames for one sender (system id, component id, sequence counter).
+
+    `pack(message_class, *wire_values)` takes the payload values in wire order (the order of
+    `message_class.ordered_fieldnames`, arrays flattened), exactly as the message's struct
+    wants them. About 4x faster than building pymavlink message objects.
+    """
+
+    def __init__(self, system_id: int, component_id: int) -> None:
+        self.system_id = system_id
+        self.component_id = component_id
+        self.sequence = 0
+        self._header = struct.Struct("<BBBBBBB")
+        self._msgid_bytes: dict[int, bytes] = {}
+
+    def pack(self, message_class: type[MAVLinkMessage], *wire_values: float | int) -> bytes:
+        """One complete MAVLink 2 frame carrying `wire_values`."""
+        payload = message_class.unpacker.pack(*wire_values)
+        return self.frame(message_class.id, message_class.crc_extra, payload)
+
+    def frame(self, msgid: int, crc_extra: int, payload: bytes) -> bytes:
+        """Frame an already packed payload (trailing zero bytes are truncated, as MAVLink 2
+        senders do; receivers zero-extend)."""
+        payload = payload.rstrip(b"\0") or b"\0"
+        ids = self._msgid_bytes.get(msgid)
+        if ids is None:
+            ids = self._msgid_bytes[msgid] = msgid.to_bytes(3, "little")
+        header = self._header.pack(
+            MAVLINK2_MAGIC, len(payload), 0, 0, self.sequence, self.system_id, self.component_id
+        ) + ids
+        self.sequence = (self.sequence + 1) & 0xFF
+        crc = crc_mcrf4xx(header[1:] + payload + _CRC_EXTRA_BYTES[crc_extra])
+        return header + payload + crc.to_bytes(2, "little")
+
+
+# -- decoding ---------------------------------------------------------------------------------
+class Frame(NamedTuple):
+    """One checked MAVLink frame. `payload` is zero-extended to the dialect's full length
+    (truncated v2 payloads) or cut to it (a newer dialect's extra extensions)."""
+
+    msgid: int
+    system_id: int
+    component_id: int
+    sequence: int
+    payload: bytes
+    raw: bytes
+
+
+@dataclass
+class ParserStats:
+    """What the parser threw away, for logs and tests."""
+
+    frames: int = 0
+    garbage_bytes: int = 0
+    bad_crc: int = 0
+    unknown_msgid: int = 0
+
+
+_MAGIC = re.compile(b"[\xfd\xfe]")
+
+
+_INCOMPLETE = -1
+_BAD = 0
+
+
+class FrameParser:
+    """Splits a byte stream (TCP, partial reads) into CRC-checked MAVLink 1/2 frames.
+
+    Never raises on bad input: bytes before a frame start, frames with a bad checksum and
+    frames with ids the dialect does not know are skipped and counted in `stats`. A fake
+    header in garbage (a magic byte followed by a long length) does not stall the stream: when
+    a complete, valid frame starts after it, the fake header is skipped without waiting for
+    the bytes it claims.
+    """
+
+    # Cap on buffered bytes, so a peer that sends only garbage cannot grow memory.
+    MAX_BUFFER = 1 << 20
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+        self.stats = ParserStats()
+
+    def feed(self, data: bytes) -> list[Frame]:
+        """Add received bytes; return the complete frames now available, in order."""
+        buf = self._buffer
+        buf += data
+        frames: list[Frame] = []
+        pos = 0
+        size = len(buf)
+        stats = self.stats
+        while pos < size:
+            magic = buf[pos]
+            if magic != MAVLINK2_MAGIC and magic != MAVLINK1_MAGIC:
+                found = _MAGIC.search(buf, pos)
+                next_pos = found.start() if found else size
+                stats.garbage_bytes += next_pos - pos
+                pos = next_pos
+                continue
+            total = self._check(buf, pos, size, frames)
+            if total > 0:
+                pos += total
+                continue
+            if total == _BAD:
+                stats.garbage_bytes += 1
+                pos += 1
+                continue
+            # Incomplete: a real frame still arriving, or a fake header. Only skip it when a
+            # complete valid frame follows.
+            later = self._find_complete(buf, pos + 1, size, frames)
+            if later is None:
+                break
+            stats.garbage_bytes += later[0] - pos
+            pos = later[0] + later[1]
+        del buf[:pos]
+        if len(buf) > self.MAX_BUFFER:
+            stats.garbage_bytes += len(buf)
+            buf.clear()
+        return frames
+
+    def _find_complete(
+        self, buf: bytearray, start: int, size: int, frames: list[Frame]
+    ) -> tuple[int, int] | None:
+        """(position, length) of the first complete valid frame at or after `start`."""
+        stats = dataclasses.replace(self.stats)  # look-ahead failures are not counted
+        for found in _MAGIC.finditer(buf, start):
+            total = self._check(buf, found.start(), size, frames)
+            if total > 0:
+                self.stats.bad_crc, self.stats.unknown_msgid = stats.bad_crc, stats.unknown_msgid
+                return found.start(), total
+        self.stats.bad_crc, self.stats.unknown_msgid = stats.bad_crc, stats.unknown_msgid
+        return None
+
+    def _check(self, buf: bytearray, pos: int, size: int, frames: list[Frame]) -> int:
+        """Frame at `pos`: appends it and returns its length, or _BAD / _INCOMPLETE."""
+        if buf[pos] == MAVLINK2_MAGIC:
+            if size - pos < MAVLINK2_HEADER_LEN:
+                return _INCOMPLETE
+            _, length, incompat, _, seq, sysid, compid, low, high = _HEADER2.unpack_from(buf, pos)
+            msgid = low | (high << 16)
+            total = MAVLINK2_HEADER_LEN + length + 2
+            if incompat & MAVLINK_IFLAG_SIGNED:
+                total += MAVLINK_SIGNATURE_LEN
+            header_len = MAVLINK2_HEADER_LEN
+        else:
+            if size - pos < MAVLINK1_HEADER_LEN:
+                return _INCOMPLETE
+            _, length, seq, sysid, compid, msgid = _HEADER1.unpack_from(buf, pos)
+            total = MAVLINK1_HEADER_LEN + length + 2
+            header_len = MAVLINK1_HEADER_LEN
+        cls = dialect.mavlink_map.get(msgid)
+        if cls is None:
+            # Can't check the CRC without CRC_EXTRA: treat the magic byte as garbage and
+            # resynchronise on the next one rather than trusting the length byte.
+            self.stats.unknown_msgid += 1
+            return _BAD
+        if size - pos < total:
+            return _INCOMPLETE
+        end_payload = pos + header_len + length
+        crc = buf[end_payload] | (buf[end_payload + 1] << 8)
+        if crc != crc_mcrf4xx(bytes(buf[pos + 1 : end_payload]) + _CRC_EXTRA_BYTES[cls.crc_extra]):
+            self.stats.bad_crc += 1
+            return _BAD
+        full = cls.unpacker.size
+        payload = bytes(buf[pos + header_len : end_payload])
+        if length < full:
+            payload += bytes(full - length)
+        elif length > full:
+            payload = payload[:full]
+        frames.append(Frame(msgid, sysid, compid, seq, payload, bytes(buf[pos : pos + total])))
+        self.stats.frames += 1
+        return total
+
+
+def unpack_payload(frame: Frame) -> tuple:
+    """The frame's payload values in wire order (arrays flattened), via the dialect's struct."""
+    return dialect.mavlink_map[frame.msgid].unpacker.unpack(frame.payload)
+
+
+def decode_frame(codec: dialect.MAVLink, frame: Frame) -> MAVLinkMessage:
+    """A pymavlink message object for a frame (for rare messages, tests and logs)."""
+    return codec.decode(bytearray(frame.raw))

@@ -1,0 +1,165 @@
+"""StubAutopilot: the stub's brain, free of I/O.
+
+One `update(frame)` per lockstep step turns a SensorFrame into a MotorCommand, the way PX4
+turns a HIL_SENSOR into a HIL_ACTUATOR_CONTROLS. The MAVLink API layer and the `direct` env
+backend drive it through the commander methods (arm, takeoff, set_velocity_setpoint_ned, ...).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from sitl_bridge.physics.simulation import MotorCommand
+
+from .commander import Commander, Home, Output
+from .control import AttitudeControl, PositionControl, RateControl, body_z_to_attitude
+from .estimator import Estimate, GroundTruthEstimator, SensorEstimator
+from .mixer import QuadGeometry, QuadXMixer
+from .modes import CommandResult, LandedState
+from .params import ParamTable
+
+if TYPE_CHECKING:
+    from sitl_bridge.sensors import SensorFrame
+
+_NAN = float("nan")
+_OFF = MotorCommand((0.0, 0.0, 0.0, 0.0), False)
+_IDLE = MotorCommand((0.0, 0.0, 0.0, 0.0), True)
+
+
+class StubAutopilot:
+    """A PX4-compatible multicopter autopilot without sockets (see docs/architecture.md).
+
+    instance: vehicle instance i (MAVLink system id 1 + i).
+    params: parameter table (PX4 names); a fresh default table when None.
+    ground_truth_estimate: use SensorFrame.truth instead of estimating from the sensors
+        (faster, noise-free; not what PX4 sees).
+    geometry: airframe constants for the mixer (Gazebo Iris by default).
+    """
+
+    def __init__(self, instance: int = 0, params: ParamTable | None = None, *,
+                 ground_truth_estimate: bool = False, geometry: QuadGeometry | None = None) -> None:
+        self.instance = instance
+        self.params = params if params is not None else ParamTable()
+        if "MAV_SYS_ID" in self.params:
+            self.params.set("MAV_SYS_ID", 1 + instance)
+        self.ground_truth_estimate = ground_truth_estimate
+        self.estimator = GroundTruthEstimator() if ground_truth_estimate else SensorEstimator()
+        self.commander = Commander(self.params)
+        self.mixer = QuadXMixer(geometry)
+        self.position_control = PositionControl(self.params)
+        self.attitude_control = AttitudeControl(self.params)
+        self.rate_control = RateControl(self.params)
+        self.last_command: MotorCommand = _OFF
+        self.thrust_collective = 0.0
+        self.attitude_setpoint: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+        self.steps = 0
+        self._last_time_us: int | None = None
+
+    # --- lockstep ----------------------------------------------------------------------------
+    def update(self, frame: SensorFrame) -> MotorCommand:
+        """Estimate, run the commander and the control cascade for one step; motor outputs."""
+        est = self.estimator.update(frame)
+        dt_s = 0.0 if self._last_time_us is None else max(0, frame.time_us - self._last_time_us) * 1e-6
+        self._last_time_us = frame.time_us
+        self.steps += 1
+        output, sp = self.commander.step(est, self.thrust_collective)
+        if output is not Output.FLY:
+            self.position_control.reset()
+            self.rate_control.reset()
+            self.thrust_collective = 0.0
+            self.last_command = _IDLE if output is Output.IDLE else _OFF
+            return self.last_command
+
+        pc = self.position_control
+        thr = pc.update(dt_s, sp, est.position_ned_m, est.velocity_ned_m_s, est.accel_ned_m_s2)
+        if self.commander.maybe_landed:
+            # PX4 drops the thrust to idle when it suspects a landing: confirms or refutes it
+            pc.reset()
+            thr = (0.0, 0.0, -self.params["MPC_THR_MIN"])
+        thrust = math.sqrt(thr[0] * thr[0] + thr[1] * thr[1] + thr[2] * thr[2])
+        yaw = sp.yaw_rad
+        if yaw != yaw:
+            yaw = est.euler_rad[2]
+        q_sp = body_z_to_attitude((-thr[0], -thr[1], -thr[2]), yaw)
+        self.attitude_setpoint = q_sp
+        yaw_rate_ff = sp.yaw_rate_rad_s if sp.yaw_rate_rad_s == sp.yaw_rate_rad_s else 0.0
+        rate_sp = self.attitude_control.update(est.quaternion_ned_frd, q_sp, yaw_rate_ff)
+        torque = self.rate_control.update(dt_s, est.angular_velocity_frd_rad_s, rate_sp,
+                                          self.mixer.saturated, self.commander.landed)
+        self.thrust_collective = thrust
+        self.last_command = MotorCommand(self.mixer.mix(thrust, torque), True)
+        return self.last_command
+
+    # --- commander -----------------------------------------------------------------------------
+    def arm(self) -> CommandResult:
+        """Arm (needs a position estimate; in OFFBOARD a fresh setpoint)."""
+        return self.commander.arm()
+
+    def disarm(self, force: bool = False) -> CommandResult:
+        """Disarm; in the air only with force=True."""
+        return self.commander.disarm(force)
+
+    def takeoff(self) -> CommandResult:
+        """AUTO.TAKEOFF to MIS_TAKEOFF_ALT above home, then AUTO.LOITER."""
+        return self.commander.takeoff()
+
+    def land(self) -> CommandResult:
+        """AUTO.LAND; auto-disarm COM_DISARM_LAND s after touchdown."""
+        return self.commander.land()
+
+    def hold(self) -> CommandResult:
+        """AUTO.LOITER (MAVSDK's HOLD)."""
+        return self.commander.hold()
+
+    def return_to_launch(self) -> CommandResult:
+        """AUTO.RTL."""
+        return self.commander.return_to_launch()
+
+    def set_mode(self, main_mode: int, sub_mode: int) -> CommandResult:
+        """PX4 main/sub mode switch (DO_SET_MODE params 2 and 3)."""
+        return self.commander.set_mode(main_mode, sub_mode)
+
+    def set_velocity_setpoint_ned(self, velocity_ned_m_s: Sequence[float], yaw_rad: float | None = None) -> None:
+        """Offboard velocity setpoint (m/s NED); yaw None keeps the current heading."""
+        self.commander.set_offboard_setpoint(
+            velocity_ned_m_s=tuple(velocity_ned_m_s), yaw_rad=_NAN if yaw_rad is None else yaw_rad)
+
+    def set_position_setpoint_ned(self, position_ned_m: Sequence[float], yaw_rad: float | None = None) -> None:
+        """Offboard position setpoint (m NED, local origin); yaw None keeps the current heading."""
+        self.commander.set_offboard_setpoint(
+            position_ned_m=tuple(position_ned_m), yaw_rad=_NAN if yaw_rad is None else yaw_rad)
+
+    def set_offboard_setpoint(self, position_ned_m: Sequence[float] = (_NAN, _NAN, _NAN),
+                              velocity_ned_m_s: Sequence[float] = (_NAN, _NAN, _NAN),
+                              yaw_rad: float = _NAN, yaw_rate_rad_s: float = _NAN) -> None:
+        """General offboard setpoint as SET_POSITION_TARGET_LOCAL_NED carries it (NaN = ignore)."""
+        self.commander.set_offboard_setpoint(tuple(position_ned_m), tuple(velocity_ned_m_s), yaw_rad, yaw_rate_rad_s)
+
+    # --- state ---------------------------------------------------------------------------------
+    @property
+    def time_us(self) -> int:
+        """Simulated time of the last update (us)."""
+        return self.commander.time_us
+
+    @property
+    def armed(self) -> bool:
+        return self.commander.armed
+
+    @property
+    def custom_mode(self) -> int:
+        """PX4 custom_mode for HEARTBEAT."""
+        return self.commander.custom_mode
+
+    @property
+    def landed_state(self) -> LandedState:
+        return self.commander.landed_state
+
+    @property
+    def estimate(self) -> Estimate:
+        return self.estimator.estimate
+
+    @property
+    def home(self) -> Home | None:
+        return self.commander.home

@@ -1,0 +1,445 @@
+"""The stub's commander: arming, modes, land detector, takeoff/hold/land/RTL, offboard failsafe.
+
+Everything runs on simulated time (`time_us` of the sensor frames). Each step the commander
+turns the current mode into a `Setpoint` for the position controller and says whether the
+motors are off (disarmed), idling (armed on the ground) or flying.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+from enum import Enum
+
+from .control import Setpoint
+from .estimator import Estimate
+from .modes import (
+    HOLD,
+    LAND,
+    OFFBOARD,
+    RTL,
+    TAKEOFF,
+    AutoSubMode,
+    CommandResult,
+    LandedState,
+    MainMode,
+    custom_mode,
+)
+from .params import ParamTable
+from .vec import Vec3, quat_yaw, wrap_pi
+
+log = logging.getLogger(__name__)
+
+_NAN = float("nan")
+_NAN3 = (_NAN, _NAN, _NAN)
+
+
+class Output(Enum):
+    """What the motors do this step."""
+
+    OFF = 0     # disarmed: all controls 0
+    IDLE = 1    # armed on the ground: idle spin
+    FLY = 2     # run the controller
+
+
+@dataclass
+class Home:
+    """Home position: set at the first position fix and again on arming (like PX4)."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    position_ned_m: Vec3
+    yaw_rad: float
+
+
+@dataclass
+class OffboardSetpoint:
+    """Last offboard setpoint (NaN = not controlled), with the simulated time it arrived."""
+
+    position_ned_m: Vec3 = _NAN3
+    velocity_ned_m_s: Vec3 = _NAN3
+    yaw_rad: float = _NAN
+    yaw_rate_rad_s: float = _NAN
+    time_us: int = -1
+
+
+def _finite(x: float) -> bool:
+    return x == x and x not in (math.inf, -math.inf)
+
+
+class Commander:
+    """Vehicle state machine; see module docstring. Methods return `CommandResult`."""
+
+    # ground contact / landed: each stage must hold this fraction of LNDMC_TRIG_TIME
+    _LAND_STAGE_FRACTION = 1.0 / 3.0
+    _TAKEOFF_ACCEPT_M = 0.3      # takeoff done when this close to the target altitude
+    _RTL_ACCEPT_M = 1.0
+    _AIRBORNE_CLIMB_M = 0.3      # climbed this far above the ground point: in the air
+
+    def __init__(self, params: ParamTable) -> None:
+        self.params = params
+        self.time_us = 0
+        self.armed = False
+        self.main_mode = int(MainMode.AUTO)
+        self.sub_mode = int(AutoSubMode.LOITER)
+        self.landed = True
+        self.ground_contact = False
+        self.maybe_landed = False
+        self.home: Home | None = None
+        self.offboard = OffboardSetpoint()
+        self.estimate: Estimate | None = None
+        self.status_texts: deque[tuple[int, str]] = deque(maxlen=32)  # (MAV_SEVERITY, text)
+        self.failsafe_active = False
+        self._arm_time_us = 0
+        self._flown_since_arming = False
+        self._landed_since_us = 0
+        self._contact_since_us: int | None = None
+        self._maybe_since_us: int | None = None
+        self._ground_z_m = 0.0
+        self._hold_position: Vec3 = _NAN3
+        self._yaw_sp = _NAN
+        self._takeoff_target: Vec3 = _NAN3
+        self._land_xy: tuple[float, float] = (_NAN, _NAN)
+        self._rtl_phase = 0
+        self._last_setpoint = Setpoint()
+        self._dt_s = 0.0
+
+    # --- state as MAVLink sees it --------------------------------------------------------
+    @property
+    def custom_mode(self) -> int:
+        """PX4 custom_mode of the current mode."""
+        return custom_mode(self.main_mode, self.sub_mode)
+
+    @property
+    def landed_state(self) -> LandedState:
+        """MAV_LANDED_STATE for EXTENDED_SYS_STATE."""
+        if not self.armed or self.landed:
+            return LandedState.ON_GROUND
+        mode = (self.main_mode, self.sub_mode)
+        if mode == TAKEOFF:
+            return LandedState.TAKEOFF
+        if mode == LAND or (mode == RTL and self._rtl_phase == 3):
+            return LandedState.LANDING
+        return LandedState.IN_AIR
+
+    def _text(self, severity: int, text: str) -> None:
+        self.status_texts.append((severity, text))
+        log.info("commander: %s", text)
+
+    # --- commands --------------------------------------------------------------------------
+    def arm(self) -> CommandResult:
+        """Arm if the estimate is good and the mode allows it."""
+        if self.armed:
+            return CommandResult.ACCEPTED
+        e = self.estimate
+        if e is None or not e.attitude_valid or not e.position_valid:
+            self._text(4, "Arming denied: no position estimate")
+            return CommandResult.DENIED
+        if (self.main_mode, self.sub_mode) == OFFBOARD and not self._offboard_fresh():
+            self._text(4, "Arming denied: no offboard signal")
+            return CommandResult.DENIED
+        self.armed = True
+        self._arm_time_us = self.time_us
+        self._flown_since_arming = False
+        self.landed = True
+        self._landed_since_us = self.time_us
+        self._ground_z_m = e.position_ned_m[2]
+        self._set_home(e)
+        self._text(6, "Armed by external command")
+        return CommandResult.ACCEPTED
+
+    def disarm(self, force: bool = False) -> CommandResult:
+        """Disarm; refused in the air unless forced (PX4 param2 = 21196)."""
+        if not self.armed:
+            return CommandResult.ACCEPTED
+        if not self.landed and not force:
+            self._text(4, "Disarming denied: not landed")
+            return CommandResult.DENIED
+        self._disarm("external command")
+        return CommandResult.ACCEPTED
+
+    def takeoff(self) -> CommandResult:
+        """AUTO.TAKEOFF: climb MIS_TAKEOFF_ALT above home, then AUTO.LOITER."""
+        e = self.estimate
+        if e is None or not e.position_valid:
+            return CommandResult.TEMPORARILY_REJECTED
+        if self.home is None:
+            self._set_home(e)
+        home_z = self.home.position_ned_m[2] if self.home else e.position_ned_m[2]
+        target_z = min(home_z - self.params["MIS_TAKEOFF_ALT"], e.position_ned_m[2])
+        self._takeoff_target = (e.position_ned_m[0], e.position_ned_m[1], target_z)
+        self._yaw_sp = quat_yaw(e.quaternion_ned_frd)
+        self._enter(TAKEOFF)
+        return CommandResult.ACCEPTED
+
+    def land(self) -> CommandResult:
+        """AUTO.LAND at the current horizontal position; disarms after touchdown."""
+        e = self.estimate
+        if e is None or not e.position_valid:
+            return CommandResult.TEMPORARILY_REJECTED
+        self._enter(LAND)
+        return CommandResult.ACCEPTED
+
+    def hold(self) -> CommandResult:
+        """AUTO.LOITER at the stopping point."""
+        e = self.estimate
+        if e is None or not e.position_valid:
+            return CommandResult.TEMPORARILY_REJECTED
+        self._enter(HOLD)
+        return CommandResult.ACCEPTED
+
+    def return_to_launch(self) -> CommandResult:
+        """AUTO.RTL: climb to RTL_RETURN_ALT, fly home, land."""
+        e = self.estimate
+        if e is None or not e.position_valid or self.home is None:
+            return CommandResult.TEMPORARILY_REJECTED
+        self._enter(RTL)
+        return CommandResult.ACCEPTED
+
+    def set_mode(self, main_mode: int, sub_mode: int) -> CommandResult:
+        """DO_SET_MODE with PX4 main/sub modes; RC-only modes are refused (no RC in sim)."""
+        if main_mode == MainMode.OFFBOARD:
+            if not self._offboard_fresh():
+                self._text(4, "Switching to Offboard is currently not possible: no setpoint")
+                return CommandResult.TEMPORARILY_REJECTED
+            self._enter(OFFBOARD)
+            return CommandResult.ACCEPTED
+        if main_mode == MainMode.AUTO:
+            handlers = {
+                AutoSubMode.LOITER: self.hold,
+                AutoSubMode.TAKEOFF: self.takeoff,
+                AutoSubMode.LAND: self.land,
+                AutoSubMode.RTL: self.return_to_launch,
+            }
+            handler = handlers.get(sub_mode)
+            if handler is not None:
+                return handler()
+            return CommandResult.TEMPORARILY_REJECTED   # READY, MISSION (no mission), ...
+        if main_mode in MainMode._value2member_map_:
+            # manual / altitude / position / stabilized / acro need RC, which the sim has not
+            return CommandResult.TEMPORARILY_REJECTED
+        return CommandResult.UNSUPPORTED
+
+    def set_offboard_setpoint(self, position_ned_m: Vec3 = _NAN3, velocity_ned_m_s: Vec3 = _NAN3,
+                              yaw_rad: float = _NAN, yaw_rate_rad_s: float = _NAN) -> None:
+        """Store an offboard setpoint (NaN components are not controlled), stamped with sim time."""
+        self.offboard = OffboardSetpoint(
+            tuple(float(x) for x in position_ned_m),  # type: ignore[arg-type]
+            tuple(float(x) for x in velocity_ned_m_s),  # type: ignore[arg-type]
+            float(yaw_rad), float(yaw_rate_rad_s), self.time_us,
+        )
+
+    def _offboard_fresh(self) -> bool:
+        sp = self.offboard
+        if sp.time_us < 0:
+            return False
+        return self.time_us - sp.time_us <= self.params["COM_OF_LOSS_T"] * 1e6
+
+    # --- mode entry ------------------------------------------------------------------------
+    def _enter(self, mode: tuple[int, int]) -> None:
+        e = self.estimate
+        previous = (self.main_mode, self.sub_mode)
+        self.main_mode, self.sub_mode = int(mode[0]), int(mode[1])
+        if mode != OFFBOARD:
+            self.failsafe_active = False if mode != previous else self.failsafe_active
+        if e is None:
+            return
+        if mode == HOLD:
+            self._hold_position = self._stopping_point(e)
+            self._yaw_sp = quat_yaw(e.quaternion_ned_frd)
+        elif mode == LAND:
+            self._land_xy = self._stopping_point(e)[:2]
+            self._yaw_sp = quat_yaw(e.quaternion_ned_frd)
+        elif mode == RTL:
+            self._rtl_phase = 1
+            self._yaw_sp = quat_yaw(e.quaternion_ned_frd)
+            self._hold_position = self._stopping_point(e)
+        elif mode == OFFBOARD:
+            self._yaw_sp = quat_yaw(e.quaternion_ned_frd)
+        if mode != previous:
+            self._text(6, f"Mode: {mode_name(self.custom_mode)}")
+
+    def _stopping_point(self, e: Estimate) -> Vec3:
+        """Where the vehicle comes to rest braking at MPC_ACC_HOR (roughly what PX4 holds)."""
+        acc = max(self.params["MPC_ACC_HOR"], 0.5)
+        p, v = e.position_ned_m, e.velocity_ned_m_s
+        return (p[0] + v[0] * abs(v[0]) / (2 * acc), p[1] + v[1] * abs(v[1]) / (2 * acc),
+                p[2] + v[2] * abs(v[2]) / (2 * acc))
+
+    def _set_home(self, e: Estimate) -> None:
+        self.home = Home(e.lat_deg, e.lon_deg, e.alt_amsl_m, e.position_ned_m, quat_yaw(e.quaternion_ned_frd))
+
+    def _disarm(self, reason: str) -> None:
+        self.armed = False
+        self.landed = True
+        self.ground_contact = self.maybe_landed = False
+        self._text(6, f"Disarmed by {reason}")
+
+    # --- per step ----------------------------------------------------------------------------
+    def step(self, e: Estimate, thrust_collective: float) -> tuple[Output, Setpoint]:
+        """Advance the state machine to e.time_us; returns what the motors do and the setpoint."""
+        self._dt_s = max(0, e.time_us - self.time_us) * 1e-6 if self.estimate is not None else 0.0
+        self.time_us = e.time_us
+        self.estimate = e
+        if self.home is None and e.position_valid:
+            self._set_home(e)
+        if not self.armed:
+            return Output.OFF, self._last_setpoint
+        self._offboard_failsafe()
+        sp = self._setpoint(e)
+        self._last_setpoint = sp
+        if self.landed:
+            self._auto_disarm_checks()
+            if not self.armed:
+                return Output.OFF, sp
+            if self._wants_to_climb(e, sp):
+                if e.position_ned_m[2] < self._ground_z_m - self._AIRBORNE_CLIMB_M or e.velocity_ned_m_s[2] < -0.5:
+                    self.landed = False
+                    self._flown_since_arming = True
+                    self._contact_since_us = self._maybe_since_us = None
+                    self._text(6, "Takeoff detected")
+                return Output.FLY, sp
+            self._ground_z_m = e.position_ned_m[2]
+            return Output.IDLE, sp
+        self._land_detector(e, sp, thrust_collective)
+        if self.landed:
+            self._landed_since_us = self.time_us
+            self._ground_z_m = e.position_ned_m[2]
+            self._text(6, "Landing detected")
+            return Output.IDLE, sp
+        return Output.FLY, sp
+
+    def _offboard_failsafe(self) -> None:
+        if (self.main_mode, self.sub_mode) != OFFBOARD or self._offboard_fresh():
+            return
+        action = int(self.params["COM_OBL_RC_ACT"])
+        self._text(3, "Failsafe: offboard signal lost")
+        if action == 7:
+            self._disarm("offboard loss failsafe")
+        elif action == 3:
+            self.return_to_launch() if self.home is not None else self._enter(LAND)
+        elif action == 4:
+            self._enter(LAND)
+        else:
+            # 0-2 fall back to an RC mode; without RC PX4 holds (as does 5 = Hold)
+            self._enter(HOLD)
+        self.failsafe_active = True
+
+    def _auto_disarm_checks(self) -> None:
+        p = self.params
+        since_landed_s = (self.time_us - self._landed_since_us) * 1e-6
+        if self._flown_since_arming:
+            if p["COM_DISARM_LAND"] > 0 and since_landed_s >= p["COM_DISARM_LAND"]:
+                self._disarm("auto disarm on land")
+        elif p["COM_DISARM_PRFLT"] > 0 and (self.time_us - self._arm_time_us) * 1e-6 >= p["COM_DISARM_PRFLT"]:
+            self._disarm("auto preflight disarming")
+
+    def _wants_to_climb(self, e: Estimate, sp: Setpoint) -> bool:
+        mode = (self.main_mode, self.sub_mode)
+        if mode in (LAND, HOLD) or (mode == RTL and self._rtl_phase == 3):
+            return False
+        vz = sp.velocity_ned_m_s[2]
+        pz = sp.position_ned_m[2]
+        return (_finite(vz) and vz < -0.2) or (_finite(pz) and pz < e.position_ned_m[2] - 0.3)
+
+    def _land_detector(self, e: Estimate, sp: Setpoint, thrust_collective: float) -> None:
+        """PX4-like: ground contact (descent commanded, no vertical motion), then maybe landed
+        (thrust forced low, still no motion), then landed; each stage a third of LNDMC_TRIG_TIME."""
+        p = self.params
+        stage_us = p["LNDMC_TRIG_TIME"] * self._LAND_STAGE_FRACTION * 1e6
+        vz_limit = p["LNDMC_Z_VEL_MAX"]
+        v = e.velocity_ned_m_s
+        descend_commanded = _finite(sp.velocity_ned_m_s[2]) and sp.velocity_ned_m_s[2] > 0.3 * vz_limit \
+            or (_finite(sp.position_ned_m[2]) and sp.position_ned_m[2] > e.position_ned_m[2] + 0.5)
+        still = abs(v[2]) < 0.6 * vz_limit and math.hypot(v[0], v[1]) < p["LNDMC_XY_VEL_MAX"]
+        contact = descend_commanded and still
+        if not contact:
+            self.ground_contact = self.maybe_landed = False
+            self._contact_since_us = self._maybe_since_us = None
+            return
+        if self._contact_since_us is None:
+            self._contact_since_us = self.time_us
+        self.ground_contact = self.time_us - self._contact_since_us >= stage_us
+        if not self.ground_contact:
+            return
+        if self._maybe_since_us is None:
+            self._maybe_since_us = self.time_us
+        self.maybe_landed = True
+        if self.time_us - self._maybe_since_us >= 2 * stage_us:
+            self.landed = True
+            self.ground_contact = self.maybe_landed = False
+            self._contact_since_us = self._maybe_since_us = None
+
+    # --- setpoints per mode ----------------------------------------------------------------------
+    def _setpoint(self, e: Estimate) -> Setpoint:
+        mode = (self.main_mode, self.sub_mode)
+        p = self.params
+        if mode == OFFBOARD:
+            o = self.offboard
+            if _finite(o.yaw_rad):
+                self._yaw_sp = o.yaw_rad
+            elif _finite(o.yaw_rate_rad_s):
+                self._yaw_sp = wrap_pi(self._yaw_sp + o.yaw_rate_rad_s * self._dt_s)
+            return Setpoint(o.position_ned_m, o.velocity_ned_m_s, self._yaw_sp,
+                            o.yaw_rate_rad_s if _finite(o.yaw_rate_rad_s) and not _finite(o.yaw_rad) else _NAN)
+        if mode == TAKEOFF:
+            t = self._takeoff_target
+            if abs(e.position_ned_m[2] - t[2]) < self._TAKEOFF_ACCEPT_M and not self.landed:
+                self._enter(HOLD)
+                self._hold_position = t
+                return Setpoint(t, _NAN3, self._yaw_sp)
+            return Setpoint(t, _NAN3, self._yaw_sp, max_velocity_up_m_s=p["MPC_TKO_SPEED"])
+        if mode == LAND:
+            return Setpoint((self._land_xy[0], self._land_xy[1], _NAN), (_NAN, _NAN, self._land_speed(e)),
+                            self._yaw_sp)
+        if mode == RTL:
+            return self._rtl_setpoint(e)
+        return Setpoint(self._hold_position, _NAN3, self._yaw_sp)
+
+    def _land_speed(self, e: Estimate) -> float:
+        """MPC_LAND_SPEED near the ground, faster (up to MPC_Z_VEL_MAX_DN) above MPC_LAND_ALT2."""
+        p = self.params
+        home_z = self.home.position_ned_m[2] if self.home else self._ground_z_m
+        height = home_z - e.position_ned_m[2]
+        slow, fast = p["MPC_LAND_SPEED"], max(p["MPC_Z_VEL_MAX_DN"], p["MPC_LAND_SPEED"])
+        alt1, alt2 = p["MPC_LAND_ALT1"], p["MPC_LAND_ALT2"]
+        if height <= alt2:
+            return slow
+        if height >= alt1 or alt1 <= alt2:
+            return fast
+        return slow + (fast - slow) * (height - alt2) / (alt1 - alt2)
+
+    def _rtl_setpoint(self, e: Estimate) -> Setpoint:
+        assert self.home is not None
+        home = self.home.position_ned_m
+        return_z = min(home[2] - self.params["RTL_RETURN_ALT"], e.position_ned_m[2])
+        if self._rtl_phase == 1:   # climb
+            target = (self._hold_position[0], self._hold_position[1], min(return_z, self._hold_position[2]))
+            self._hold_position = target
+            if abs(e.position_ned_m[2] - target[2]) < self._RTL_ACCEPT_M:
+                self._rtl_phase = 2
+            return Setpoint(target, _NAN3, self._yaw_sp)
+        if self._rtl_phase == 2:   # fly home at altitude
+            target = (home[0], home[1], self._hold_position[2])
+            if math.hypot(e.position_ned_m[0] - home[0], e.position_ned_m[1] - home[1]) < self._RTL_ACCEPT_M:
+                self._rtl_phase = 3
+                self._land_xy = (home[0], home[1])
+            return Setpoint(target, _NAN3, self._yaw_sp)
+        return Setpoint((self._land_xy[0], self._land_xy[1], _NAN), (_NAN, _NAN, self._land_speed(e)), self._yaw_sp)
+
+
+_MODE_NAMES = {
+    custom_mode(*HOLD): "Hold",
+    custom_mode(*TAKEOFF): "Takeoff",
+    custom_mode(*LAND): "Land",
+    custom_mode(*RTL): "Return",
+    custom_mode(*OFFBOARD): "Offboard",
+}
+
+
+def mode_name(value: int) -> str:
+    """Human name of a PX4 custom_mode (as QGroundControl shows it)."""
+    return _MODE_NAMES.get(value, f"custom_mode {value}")

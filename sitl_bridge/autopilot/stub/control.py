@@ -1,0 +1,263 @@
+"""PX4-style cascaded multicopter control, one call per lockstep step.
+
+position P -> velocity PID (acceleration, tilt and thrust limits, anti-windup) -> attitude P
+on quaternions with yaw de-weighting -> body-rate PID -> normalised torque for the mixer.
+The structure and the default gains mirror PX4's mc_pos_control (PositionControl.cpp),
+mc_att_control (AttitudeControl.cpp) and mc_rate_control (RateControl.cpp). All vectors are
+NED / FRD tuples (see `vec.py`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .params import ParamTable
+from .vec import (
+    Quat,
+    Vec3,
+    clamp,
+    quat_conjugate,
+    quat_from_two_vectors,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+    quat_rotate_inverse,
+)
+
+GRAVITY_M_S2 = 9.80665
+_NAN = float("nan")
+
+
+@dataclass
+class Setpoint:
+    """What the position controller tracks; NaN components are not controlled.
+
+    position_ned_m and velocity_ned_m_s may both be set (velocity is then a feed-forward).
+    """
+
+    position_ned_m: Vec3 = (_NAN, _NAN, _NAN)
+    velocity_ned_m_s: Vec3 = (_NAN, _NAN, _NAN)
+    yaw_rad: float = _NAN
+    yaw_rate_rad_s: float = _NAN
+    max_velocity_up_m_s: float = _NAN      # overrides MPC_Z_VEL_MAX_UP (takeoff, landing)
+    max_velocity_down_m_s: float = _NAN
+
+
+def _finite(x: float) -> bool:
+    return x == x and x not in (math.inf, -math.inf)
+
+
+def _limit_tilt(body_z: Vec3, max_tilt_rad: float) -> Vec3:
+    """Rotate body_z towards world down (0, 0, 1) so its tilt is at most max_tilt_rad."""
+    cos_tilt = clamp(body_z[2], -1.0, 1.0)
+    if math.acos(cos_tilt) <= max_tilt_rad:
+        return body_z
+    horizontal = math.hypot(body_z[0], body_z[1])
+    if horizontal < 1e-9:
+        return (0.0, 0.0, 1.0)
+    s = math.sin(max_tilt_rad) / horizontal
+    return (body_z[0] * s, body_z[1] * s, math.cos(max_tilt_rad))
+
+
+def body_z_to_attitude(body_z: Vec3, yaw_rad: float) -> Quat:
+    """Attitude whose body z axis (FRD, down) is body_z and whose heading is yaw (PX4 bodyzToAttitude)."""
+    bz = body_z
+    n = math.sqrt(bz[0] ** 2 + bz[1] ** 2 + bz[2] ** 2)
+    bz = (0.0, 0.0, 1.0) if n < 1e-09 else (bz[0] / n, bz[1] / n, bz[2] / n)
+    y_c = (-math.sin(yaw_rad), math.cos(yaw_rad), 0.0)
+    # body_x = y_c x body_z
+    bx = (y_c[1] * bz[2] - y_c[2] * bz[1], y_c[2] * bz[0] - y_c[0] * bz[2], y_c[0] * bz[1] - y_c[1] * bz[0])
+    if bz[2] < 0.0:
+        bx = (-bx[0], -bx[1], -bx[2])
+    n = math.sqrt(bx[0] ** 2 + bx[1] ** 2 + bx[2] ** 2)
+    bx = (1.0, 0.0, 0.0) if n < 1e-09 else (bx[0] / n, bx[1] / n, bx[2] / n)
+    by = (bz[1] * bx[2] - bz[2] * bx[1], bz[2] * bx[0] - bz[0] * bx[2], bz[0] * bx[1] - bz[1] * bx[0])
+    # rotation matrix columns bx, by, bz -> quaternion
+    r00, r01, r02 = bx[0], by[0], bz[0]
+    r10, r11, r12 = bx[1], by[1], bz[1]
+    r20, r21, r22 = bx[2], by[2], bz[2]
+    tr = r00 + r11 + r22
+    if tr > 0.0:
+        s = math.sqrt(tr + 1.0) * 2.0
+        q = (0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s)
+    elif r00 > r11 and r00 > r22:
+        s = math.sqrt(1.0 + r00 - r11 - r22) * 2.0
+        q = ((r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s)
+    elif r11 > r22:
+        s = math.sqrt(1.0 + r11 - r00 - r22) * 2.0
+        q = ((r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s)
+    else:
+        s = math.sqrt(1.0 + r22 - r00 - r11) * 2.0
+        q = ((r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s)
+    return quat_normalize(q)
+
+
+class PositionControl:
+    """PX4 PositionControl: position P, velocity PID, acceleration -> thrust vector."""
+
+    def __init__(self, params: ParamTable) -> None:
+        self.params = params
+        self.velocity_integral = [0.0, 0.0, 0.0]   # m/s^2
+        self.velocity_setpoint_ned_m_s: Vec3 = (0.0, 0.0, 0.0)
+        self.thrust_setpoint_ned: Vec3 = (0.0, 0.0, -params["MPC_THR_HOVER"])
+        self.hover_thrust = params["MPC_THR_HOVER"]
+
+    def reset(self) -> None:
+        """Clear the integrators (on the ground, on mode changes that need it)."""
+        self.velocity_integral = [0.0, 0.0, 0.0]
+
+    def update(self, dt_s: float, sp: Setpoint, position_ned_m: Vec3, velocity_ned_m_s: Vec3,
+               accel_ned_m_s2: Vec3) -> Vec3:
+        """Thrust setpoint in NED, normalised (|thrust| = fraction of full collective thrust)."""
+        p = self.params
+        # --- position P (+ velocity feed-forward), PX4 _positionControl
+        vel_sp = [0.0, 0.0, 0.0]
+        for k, gain in ((0, p["MPC_XY_P"]), (1, p["MPC_XY_P"]), (2, p["MPC_Z_P"])):
+            pos_sp = sp.position_ned_m[k]
+            ff = sp.velocity_ned_m_s[k]
+            v = (pos_sp - position_ned_m[k]) * gain if _finite(pos_sp) else 0.0
+            if _finite(ff):
+                v += ff
+            elif not _finite(pos_sp):
+                v = 0.0  # neither position nor velocity: brake
+            vel_sp[k] = v
+        xy_max = p["MPC_XY_VEL_MAX"]
+        speed_xy = math.hypot(vel_sp[0], vel_sp[1])
+        if speed_xy > xy_max:
+            vel_sp[0] *= xy_max / speed_xy
+            vel_sp[1] *= xy_max / speed_xy
+        up_max = sp.max_velocity_up_m_s if _finite(sp.max_velocity_up_m_s) else p["MPC_Z_VEL_MAX_UP"]
+        down_max = sp.max_velocity_down_m_s if _finite(sp.max_velocity_down_m_s) else p["MPC_Z_VEL_MAX_DN"]
+        vel_sp[2] = clamp(vel_sp[2], -up_max, down_max)
+        self.velocity_setpoint_ned_m_s = (vel_sp[0], vel_sp[1], vel_sp[2])
+
+        # --- velocity PID -> acceleration, PX4 _velocityControl
+        kp_xy, ki_xy, kd_xy = p["MPC_XY_VEL_P_ACC"], p["MPC_XY_VEL_I_ACC"], p["MPC_XY_VEL_D_ACC"]
+        kp_z, ki_z, kd_z = p["MPC_Z_VEL_P_ACC"], p["MPC_Z_VEL_I_ACC"], p["MPC_Z_VEL_D_ACC"]
+        err = [vel_sp[k] - velocity_ned_m_s[k] for k in range(3)]
+        vi = self.velocity_integral
+        acc = (
+            kp_xy * err[0] + vi[0] - kd_xy * accel_ned_m_s2[0],
+            kp_xy * err[1] + vi[1] - kd_xy * accel_ned_m_s2[1],
+            kp_z * err[2] + vi[2] - kd_z * accel_ned_m_s2[2],
+        )
+        thr = self._acceleration_control(acc)
+
+        # vertical anti-windup: stop integrating into a saturated thrust
+        thr_min, thr_max = p["MPC_THR_MIN"], p["MPC_THR_MAX"]
+        if (thr[2] >= -thr_min and err[2] >= 0.0) or (thr[2] <= -thr_max and err[2] <= 0.0):
+            err[2] = 0.0
+        # vertical priority: what is left of the thrust goes horizontal
+        thr_xy_max = math.sqrt(max(thr_max * thr_max - thr[2] * thr[2], 0.0))
+        thr_xy = math.hypot(thr[0], thr[1])
+        if thr_xy > thr_xy_max:
+            s = thr_xy_max / thr_xy
+            thr = (thr[0] * s, thr[1] * s, thr[2])
+        # horizontal anti-windup (PX4: tracking anti-reset windup, gain 2 / P)
+        if kp_xy > 1e-6:
+            arw = 2.0 / kp_xy
+            to_acc = GRAVITY_M_S2 / max(self.hover_thrust, 1e-3)
+            for k in (0, 1):
+                err[k] -= arw * (acc[k] - thr[k] * to_acc)
+        vi[0] += ki_xy * err[0] * dt_s
+        vi[1] += ki_xy * err[1] * dt_s
+        vi[2] = clamp(vi[2] + ki_z * err[2] * dt_s, -GRAVITY_M_S2, GRAVITY_M_S2)
+        self.thrust_setpoint_ned = thr
+        return thr
+
+    def _acceleration_control(self, acc: Vec3) -> Vec3:
+        """Acceleration setpoint -> thrust vector, tilt limited (PX4 _accelerationControl)."""
+        p = self.params
+        n = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + GRAVITY_M_S2 * GRAVITY_M_S2)
+        body_z = (-acc[0] / n, -acc[1] / n, GRAVITY_M_S2 / n)
+        body_z = _limit_tilt(body_z, math.radians(p["MPC_TILTMAX_AIR"]))
+        hover = self.hover_thrust
+        thrust_ned_z = acc[2] * (hover / GRAVITY_M_S2) - hover
+        collective = min(thrust_ned_z / body_z[2], -p["MPC_THR_MIN"])
+        return (body_z[0] * collective, body_z[1] * collective, body_z[2] * collective)
+
+
+class AttitudeControl:
+    """PX4 AttitudeControl: quaternion P with reduced (tilt-first) attitude and yaw weight."""
+
+    def __init__(self, params: ParamTable) -> None:
+        self.params = params
+
+    def update(self, q: Quat, q_sp: Quat, yaw_rate_ff_rad_s: float = 0.0) -> Vec3:
+        """Body-rate setpoint (FRD, rad/s) from attitude q towards q_sp."""
+        p = self.params
+        yaw_w = clamp(p["MC_YAW_WEIGHT"], 0.0, 1.0)
+        gains = (p["MC_ROLL_P"], p["MC_PITCH_P"], p["MC_YAW_P"] / yaw_w if yaw_w > 1e-4 else p["MC_YAW_P"])
+        e_z = quat_rotate(q, (0.0, 0.0, 1.0))
+        e_z_d = quat_rotate(q_sp, (0.0, 0.0, 1.0))
+        qd_red = quat_from_two_vectors(e_z, e_z_d)
+        if abs(qd_red[1]) > 1.0 - 1e-5 or abs(qd_red[2]) > 1.0 - 1e-5:
+            qd_red = q_sp  # upside down: the full attitude is the reduced attitude
+        else:
+            qd_red = quat_multiply(qd_red, q)
+        q_mix = quat_normalize(quat_multiply(quat_conjugate(qd_red), q_sp))
+        w = clamp(q_mix[0], -1.0, 1.0)
+        z = clamp(q_mix[3], -1.0, 1.0)
+        qd = quat_multiply(qd_red, (math.cos(yaw_w * math.acos(w)), 0.0, 0.0, math.sin(yaw_w * math.asin(z))))
+        qe = quat_normalize(quat_multiply(quat_conjugate(q), qd))
+        rates = [2.0 * qe[1] * gains[0], 2.0 * qe[2] * gains[1], 2.0 * qe[3] * gains[2]]
+        if yaw_rate_ff_rad_s:
+            zb = quat_rotate_inverse(q, (0.0, 0.0, 1.0))
+            for k in range(3):
+                rates[k] += zb[k] * yaw_rate_ff_rad_s
+        limits = (
+            math.radians(p["MC_ROLLRATE_MAX"]),
+            math.radians(p["MC_PITCHRATE_MAX"]),
+            math.radians(p["MC_YAWRATE_MAX"]),
+        )
+        return (
+            clamp(rates[0], -limits[0], limits[0]),
+            clamp(rates[1], -limits[1], limits[1]),
+            clamp(rates[2], -limits[2], limits[2]),
+        )
+
+
+class RateControl:
+    """PX4 RateControl: body-rate PID with derivative on measurement -> normalised torque."""
+
+    _INTEGRATOR_LIMIT = (0.3, 0.3, 0.3)  # MC_RR_INT_LIM, MC_PR_INT_LIM, MC_YR_INT_LIM
+
+    def __init__(self, params: ParamTable) -> None:
+        self.params = params
+        self.integral = [0.0, 0.0, 0.0]
+        self._last_rate: Vec3 | None = None
+        self._rate_dot = [0.0, 0.0, 0.0]
+
+    def reset(self) -> None:
+        """Clear integrators and the derivative history."""
+        self.integral = [0.0, 0.0, 0.0]
+        self._last_rate = None
+        self._rate_dot = [0.0, 0.0, 0.0]
+
+    def update(self, dt_s: float, rate_frd_rad_s: Vec3, rate_sp_frd_rad_s: Vec3, saturated: bool,
+               landed: bool) -> Vec3:
+        """Normalised torque (roll, pitch, yaw) in about [-1, 1]."""
+        p = self.params
+        kp = (p["MC_ROLLRATE_P"], p["MC_PITCHRATE_P"], p["MC_YAWRATE_P"])
+        ki = (p["MC_ROLLRATE_I"], p["MC_PITCHRATE_I"], p["MC_YAWRATE_I"])
+        kd = (p["MC_ROLLRATE_D"], p["MC_PITCHRATE_D"], p["MC_YAWRATE_D"])
+        last = self._last_rate
+        rd = self._rate_dot
+        if last is not None and dt_s > 0.0:
+            # angular acceleration, low-passed (PX4 filters it at ~30 Hz)
+            alpha = dt_s / (dt_s + 1.0 / (2.0 * math.pi * 30.0))
+            for k in range(3):
+                rd[k] += alpha * ((rate_frd_rad_s[k] - last[k]) / dt_s - rd[k])
+        self._last_rate = rate_frd_rad_s
+        out = [0.0, 0.0, 0.0]
+        integ = self.integral
+        for k in range(3):
+            e = rate_sp_frd_rad_s[k] - rate_frd_rad_s[k]
+            out[k] = kp[k] * e + integ[k] - kd[k] * rd[k]
+            if not landed and not saturated:
+                # PX4 shrinks the integration for large errors (i_factor)
+                i_factor = max(0.0, 1.0 - (e / math.radians(400.0)) ** 2)
+                lim = self._INTEGRATOR_LIMIT[k]
+                integ[k] = clamp(integ[k] + i_factor * ki[k] * e * dt_s, -lim, lim)
+        return (out[0], out[1], out[2])

@@ -1,0 +1,309 @@
+"""State estimate from the HIL sensors: what the stub's controller believes.
+
+Two sources, chosen once at construction:
+- sensors (default): a Mahony-style complementary attitude filter (gyro integration corrected
+  by the accelerometer's gravity direction and the magnetometer's heading) and a fixed-gain
+  position/velocity filter per axis (accelerometer prediction, GPS position/velocity and
+  barometric height corrections, accelerometer bias states). The local NED origin is the
+  first GPS fix, like PX4's EKF origin.
+- `ground_truth_estimate=True`: copies SensorFrame.truth (clearly not what PX4 would know;
+  faster and noise-free, for RL speed runs).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sitl_bridge.sensors import GroundTruth
+from sitl_bridge.sensors.environment import magnetic_field_ned_gauss, pressure_altitude_m
+from sitl_bridge.world.schema import GeoHome
+
+from .vec import (
+    Quat,
+    Vec3,
+    quat_from_euler,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+    quat_rotate_inverse,
+    quat_to_euler,
+    wrap_pi,
+)
+
+if TYPE_CHECKING:
+    from sitl_bridge.sensors import SensorFrame
+
+GRAVITY_M_S2 = 9.80665
+EARTH_RADIUS_M = 6378137.0
+
+
+@dataclass
+class Estimate:
+    """The vehicle state as the autopilot sees it (NED / FRD, SI units)."""
+
+    time_us: int = 0
+    position_ned_m: Vec3 = (0.0, 0.0, 0.0)          # relative to `origin`
+    velocity_ned_m_s: Vec3 = (0.0, 0.0, 0.0)
+    accel_ned_m_s2: Vec3 = (0.0, 0.0, 0.0)          # kinematic, gravity removed
+    quaternion_ned_frd: Quat = (1.0, 0.0, 0.0, 0.0)
+    angular_velocity_frd_rad_s: Vec3 = (0.0, 0.0, 0.0)
+    lat_deg: float = 0.0
+    lon_deg: float = 0.0
+    alt_amsl_m: float = 0.0
+    # local origin (lat deg, lon deg, alt m AMSL); None until the first GPS fix
+    origin: tuple[float, float, float] | None = None
+    attitude_valid: bool = False
+    position_valid: bool = False
+    # last GPS as received (for GPS_RAW_INT)
+    gps_fix_type: int = 0
+    gps_satellites: int = 0
+    gps_eph_cm: int = 9999
+    gps_epv_cm: int = 9999
+
+    @property
+    def euler_rad(self) -> Vec3:
+        """(roll, pitch, yaw) in rad."""
+        return quat_to_euler(self.quaternion_ned_frd)
+
+
+#: Truth placeholder of frames decoded before any ground truth arrived (HIL path).
+NO_TRUTH = GroundTruth(
+    quaternion_ned_frd=np.array((1.0, 0.0, 0.0, 0.0)), angular_velocity_frd_rad_s=np.zeros(3),
+    lat_e7=0, lon_e7=0, alt_mm=0, velocity_ned_m_s=np.zeros(3), accel_ned_m_s2=np.zeros(3),
+    position_ned_m=np.zeros(3),
+)
+
+
+class GroundTruthEstimator:
+    """Estimate = SensorFrame.truth. Labelled as such: PX4 never sees ground truth."""
+
+    def __init__(self) -> None:
+        self.estimate = Estimate()
+        self._origin_ned: Vec3 | None = None
+
+    def update(self, frame: SensorFrame) -> Estimate:
+        """Copy the truth of this frame into the estimate."""
+        t = frame.truth
+        e = self.estimate
+        if t is NO_TRUTH:
+            e.time_us = frame.time_us
+            return e
+        pos = t.position_ned_m
+        if self._origin_ned is None:
+            self._origin_ned = (float(pos[0]), float(pos[1]), float(pos[2]))
+            e.origin = (t.lat_e7 * 1e-7, t.lon_e7 * 1e-7, t.alt_mm * 1e-3)
+        o = self._origin_ned
+        e.time_us = frame.time_us
+        e.position_ned_m = (float(pos[0]) - o[0], float(pos[1]) - o[1], float(pos[2]) - o[2])
+        v = t.velocity_ned_m_s
+        e.velocity_ned_m_s = (float(v[0]), float(v[1]), float(v[2]))
+        a = t.accel_ned_m_s2
+        e.accel_ned_m_s2 = (float(a[0]), float(a[1]), float(a[2]))
+        q = t.quaternion_ned_frd
+        e.quaternion_ned_frd = (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+        w = t.angular_velocity_frd_rad_s
+        e.angular_velocity_frd_rad_s = (float(w[0]), float(w[1]), float(w[2]))
+        e.lat_deg = t.lat_e7 * 1e-7
+        e.lon_deg = t.lon_e7 * 1e-7
+        e.alt_amsl_m = t.alt_mm * 1e-3
+        e.attitude_valid = True
+        e.position_valid = True
+        gps = frame.gps
+        if gps is not None:
+            e.gps_fix_type, e.gps_satellites = int(gps.fix_type), int(gps.satellites)
+            e.gps_eph_cm, e.gps_epv_cm = int(gps.eph_cm), int(gps.epv_cm)
+        else:
+            e.gps_fix_type = max(e.gps_fix_type, 3)
+            e.gps_satellites = max(e.gps_satellites, 10)
+            e.gps_eph_cm, e.gps_epv_cm = min(e.gps_eph_cm, 100), min(e.gps_epv_cm, 100)
+        return e
+
+
+class SensorEstimator:
+    """Complementary attitude filter + GPS/baro/accelerometer position filter."""
+
+    # attitude: proportional / integral correction gains (1/s, 1/s^2)
+    ACC_KP = 0.4
+    MAG_KP = 0.3
+    GYRO_BIAS_KI = 0.01
+    # position filter: gains per GPS update for position, velocity, accel bias
+    GPS_POS_GAIN = 0.25
+    GPS_VEL_GAIN = 0.35
+    GPS_POS_TO_VEL = 0.1
+    ACC_BIAS_GAIN = 0.02
+    BARO_GAIN_PER_S = 2.0          # 1/s pull of the height to the baro height
+    BARO_VEL_GAIN_PER_S = 0.5
+    MIN_GPS_FIX = 3
+    MIN_GPS_SATELLITES = 6
+
+    def __init__(self) -> None:
+        self.estimate = Estimate()
+        self._q: Quat | None = None
+        self._gyro_bias = [0.0, 0.0, 0.0]
+        self._pos = [0.0, 0.0, 0.0]
+        self._vel = [0.0, 0.0, 0.0]
+        self._acc_bias_ned = [0.0, 0.0, 0.0]
+        self._last_time_us: int | None = None
+        self._baro_offset_m: float | None = None   # baro altitude - GPS altitude at origin
+        self._last_baro_us: int | None = None
+        self._accel_lp: Vec3 = (0.0, 0.0, 0.0)
+        # kinematic acceleration from GPS velocity differences: the accelerometer measures
+        # gravity minus this, so the tilt correction must not mistake it for a tilt
+        self._gps_accel_ned = [0.0, 0.0, 0.0]
+        self._last_gps: tuple[int, Vec3] | None = None
+        self._declination_rad = 0.0   # known once the origin is: heading = field heading + this
+
+    def update(self, frame: SensorFrame) -> Estimate:
+        """Fold one SensorFrame into the estimate."""
+        dt = 0.0 if self._last_time_us is None else (frame.time_us - self._last_time_us) * 1e-6
+        self._last_time_us = frame.time_us
+        acc_b = (float(frame.accel_frd_m_s2[0]), float(frame.accel_frd_m_s2[1]), float(frame.accel_frd_m_s2[2]))
+        gyro = frame.gyro_frd_rad_s
+        gb = self._gyro_bias
+        w = (float(gyro[0]) - gb[0], float(gyro[1]) - gb[1], float(gyro[2]) - gb[2])
+        if self._q is None:
+            self._q = self._initial_attitude(acc_b, frame.mag_frd_gauss)
+        if dt > 0.0:
+            self._attitude_step(dt, acc_b, w, frame.mag_frd_gauss)
+        q = self._q
+        e = self.estimate
+        e.time_us = frame.time_us
+        e.quaternion_ned_frd = q
+        e.angular_velocity_frd_rad_s = w
+        e.attitude_valid = True
+
+        # kinematic acceleration in NED = R f + g
+        f_ned = quat_rotate(q, acc_b)
+        ab = self._acc_bias_ned
+        acc_ned = (f_ned[0] - ab[0], f_ned[1] - ab[1], f_ned[2] + GRAVITY_M_S2 - ab[2])
+        if e.position_valid and dt > 0.0:
+            for k in range(3):
+                self._pos[k] += (self._vel[k] + 0.5 * acc_ned[k] * dt) * dt
+                self._vel[k] += acc_ned[k] * dt
+        lp = self._accel_lp
+        self._accel_lp = tuple(lp[k] + 0.2 * (acc_ned[k] - lp[k]) for k in range(3))  # type: ignore[assignment]
+
+        gps = frame.gps
+        if gps is not None:
+            self._gps_update(e, gps)
+        baro = frame.baro
+        if baro is not None and e.position_valid and dt > 0.0:
+            # PX4 ignores HIL_SENSOR.pressure_alt: height comes from the pressure itself
+            self._baro_update(pressure_altitude_m(baro.pressure_hpa * 100.0), frame.time_us)
+
+        e.position_ned_m = (self._pos[0], self._pos[1], self._pos[2])
+        e.velocity_ned_m_s = (self._vel[0], self._vel[1], self._vel[2])
+        e.accel_ned_m_s2 = self._accel_lp
+        if e.origin is not None:
+            lat0, lon0, alt0 = e.origin
+            e.lat_deg = lat0 + math.degrees(self._pos[0] / EARTH_RADIUS_M)
+            e.lon_deg = lon0 + math.degrees(self._pos[1] / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+            e.alt_amsl_m = alt0 - self._pos[2]
+        return e
+
+    # --- attitude ----------------------------------------------------------------------
+    def _initial_attitude(self, acc_b: Vec3, mag) -> Quat:
+        # roll/pitch from gravity; yaw from the magnetometer (heading relative to the field)
+        roll = math.atan2(-acc_b[1], -acc_b[2])
+        pitch = math.atan2(acc_b[0], math.hypot(acc_b[1], acc_b[2]))
+        yaw = 0.0
+        if mag is not None:
+            q_rp = quat_from_euler(roll, pitch, 0.0)
+            m = quat_rotate(q_rp, (float(mag[0]), float(mag[1]), float(mag[2])))
+            yaw = -math.atan2(m[1], m[0])
+        return quat_from_euler(roll, pitch, yaw)
+
+    def _attitude_step(self, dt: float, acc_b: Vec3, w: Vec3, mag) -> None:
+        q = self._q
+        corr = [0.0, 0.0, 0.0]
+        a_norm = math.sqrt(acc_b[0] ** 2 + acc_b[1] ** 2 + acc_b[2] ** 2)
+        # trust the accelerometer's gravity direction only near 1 g
+        ga = self._gps_accel_ned
+        ref = (ga[0], ga[1], ga[2] - GRAVITY_M_S2)   # expected specific force, NED
+        ref_norm = math.sqrt(ref[0] ** 2 + ref[1] ** 2 + ref[2] ** 2)
+        if 0.5 * GRAVITY_M_S2 < a_norm < 1.5 * GRAVITY_M_S2 and ref_norm > 1.0:
+            up_meas = (acc_b[0] / a_norm, acc_b[1] / a_norm, acc_b[2] / a_norm)  # specific force points up
+            up_est = quat_rotate_inverse(q, (ref[0] / ref_norm, ref[1] / ref_norm, ref[2] / ref_norm))
+            # error = measured x estimated
+            corr[0] += self.ACC_KP * (up_meas[1] * up_est[2] - up_meas[2] * up_est[1])
+            corr[1] += self.ACC_KP * (up_meas[2] * up_est[0] - up_meas[0] * up_est[2])
+            corr[2] += self.ACC_KP * (up_meas[0] * up_est[1] - up_meas[1] * up_est[0])
+        if mag is not None:
+            m_ned = quat_rotate(q, (float(mag[0]), float(mag[1]), float(mag[2])))
+            # heading error about world down, applied in body frame
+            heading_err = wrap_pi(self._declination_rad - math.atan2(m_ned[1], m_ned[0]))
+            zb = quat_rotate_inverse(q, (0.0, 0.0, 1.0))
+            k = self.MAG_KP * heading_err
+            corr[0] += zb[0] * k
+            corr[1] += zb[1] * k
+            corr[2] += zb[2] * k
+        gb = self._gyro_bias
+        for i in range(3):
+            gb[i] -= self.GYRO_BIAS_KI * corr[i] * dt
+        wx, wy, wz = w[0] + corr[0], w[1] + corr[1], w[2] + corr[2]
+        qw, qx, qy, qz = q
+        h = 0.5 * dt
+        self._q = quat_normalize((
+            qw + h * (-qx * wx - qy * wy - qz * wz),
+            qx + h * (qw * wx + qy * wz - qz * wy),
+            qy + h * (qw * wy - qx * wz + qz * wx),
+            qz + h * (qw * wz + qx * wy - qy * wx),
+        ))
+
+    # --- position ----------------------------------------------------------------------
+    def _gps_update(self, e: Estimate, gps) -> None:
+        e.gps_fix_type, e.gps_satellites = int(gps.fix_type), int(gps.satellites)
+        e.gps_eph_cm, e.gps_epv_cm = int(gps.eph_cm), int(gps.epv_cm)
+        if gps.fix_type < self.MIN_GPS_FIX or gps.satellites < self.MIN_GPS_SATELLITES:
+            return
+        lat, lon, alt = gps.lat_e7 * 1e-7, gps.lon_e7 * 1e-7, gps.alt_mm * 1e-3
+        vel = (gps.vn_cm_s * 0.01, gps.ve_cm_s * 0.01, gps.vd_cm_s * 0.01)
+        if self._last_gps is not None and e.time_us > self._last_gps[0]:
+            dt_gps = (e.time_us - self._last_gps[0]) * 1e-6
+            prev = self._last_gps[1]
+            for k in range(3):
+                self._gps_accel_ned[k] += 0.5 * ((vel[k] - prev[k]) / dt_gps - self._gps_accel_ned[k])
+        self._last_gps = (e.time_us, vel)
+        if e.origin is None:
+            e.origin = (lat, lon, alt)
+            self._pos = [0.0, 0.0, 0.0]
+            self._vel = list(vel)
+            e.position_valid = True
+            # true heading = magnetic heading + declination (PX4 looks it up in the WMM too)
+            n, east, _ = magnetic_field_ned_gauss(GeoHome(lat_deg=lat, lon_deg=lon, alt_m=alt))
+            self._declination_rad = math.atan2(east, n)
+            if self._q is not None:
+                half = 0.5 * self._declination_rad
+                self._q = quat_normalize(quat_multiply((math.cos(half), 0.0, 0.0, math.sin(half)), self._q))
+            return
+        lat0, lon0, alt0 = e.origin
+        meas = (
+            math.radians(lat - lat0) * EARTH_RADIUS_M,
+            math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)),
+            alt0 - alt,
+        )
+        # horizontal from GPS; vertical position from baro (PX4 EKF2_HGT_REF=baro), velocity from GPS
+        for k in range(3):
+            if k < 2 or self._baro_offset_m is None:
+                ep = meas[k] - self._pos[k]
+                self._pos[k] += self.GPS_POS_GAIN * ep
+                self._vel[k] += self.GPS_POS_TO_VEL * ep
+            ev = vel[k] - self._vel[k]
+            self._vel[k] += self.GPS_VEL_GAIN * ev
+            self._acc_bias_ned[k] -= self.ACC_BIAS_GAIN * ev
+
+    def _baro_update(self, pressure_alt_m: float, time_us: int) -> None:
+        last = self._last_baro_us
+        self._last_baro_us = time_us
+        if self._baro_offset_m is None or last is None:
+            self._baro_offset_m = pressure_alt_m + self._pos[2]   # baro alt at local z = 0
+            return
+        dt = min(max(time_us - last, 0) * 1e-6, 0.5)
+        z_baro = self._baro_offset_m - pressure_alt_m
+        ez = z_baro - self._pos[2]
+        self._pos[2] += min(1.0, self.BARO_GAIN_PER_S * dt) * ez
+        self._vel[2] += min(1.0, self.BARO_VEL_GAIN_PER_S * dt) * ez

@@ -1,0 +1,447 @@
+"""PX4's MAVLink API for the stub, on UDP: what MAVSDK, QGroundControl and MAVProxy talk to.
+
+Two links per vehicle instance i, like PX4 SITL's `px4-rc.mavlink`: the offboard/API link
+(bind 127.0.0.1:14580+i, send to 14540+i) and a GCS link (bind 18570+i, send to 14550).
+A link answers the address that last wrote to it (MAVSDK's `udpin` replies to whatever
+sends). Telemetry streams run on SIMULATED time (the autopilot's clock); only the keep-alive
+HEARTBEAT looks at the wall clock: MAVSDK drops a vehicle after 3 s of wall time without
+one, and while the simulation is held simulated time stands still.
+
+`pump()` never blocks: it reads every waiting datagram, handles it, and sends what is due.
+Garbage datagrams are counted in `stats` and ignored.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from sitl_bridge import mavlink
+
+from . import telemetry
+from .modes import CommandResult
+from .params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, wire_to_value
+from .telemetry import MessagePacker
+from .vec import quat_rotate
+
+if TYPE_CHECKING:
+    from .autopilot import StubAutopilot
+
+log = logging.getLogger(__name__)
+d = mavlink.dialect
+
+API_BIND_BASE_PORT = 14580
+API_REMOTE_BASE_PORT = 14540
+GCS_BIND_BASE_PORT = 18570
+GCS_REMOTE_PORT = 14550
+KEEPALIVE_WALL_S = 1.0
+FORCE_DISARM_MAGIC = 21196
+
+# SET_POSITION_TARGET_LOCAL_NED type_mask bits (POSITION_TARGET_TYPEMASK)
+_IGNORE_POS = 0x7
+_IGNORE_VEL = 0x38
+_IGNORE_ACC = 0x1C0
+_IGNORE_YAW = 0x400
+_IGNORE_YAW_RATE = 0x800
+_NAN = float("nan")
+
+_CMD_STRUCT_LONG = d.MAVLink_command_long_message.unpacker
+_CMD_STRUCT_INT = d.MAVLink_command_int_message.unpacker
+
+
+@dataclass
+class ApiStats:
+    """Counters since construction (all links)."""
+
+    datagrams: int = 0
+    frames: int = 0
+    garbage_datagrams: int = 0     # datagrams without a single valid frame
+    garbage_bytes: int = 0
+    bad_crc: int = 0
+    commands: int = 0
+    unsupported_commands: int = 0
+    setpoints: int = 0
+    param_sets: int = 0
+    sent_datagrams: int = 0
+    send_errors: int = 0
+    keepalives: int = 0
+    ignored_messages: dict[int, int] = field(default_factory=dict)
+
+
+class _Link:
+    """One UDP socket, its peer and its stream schedule (intervals in us of simulated time)."""
+
+    def __init__(self, name: str, host: str, bind_port: int, remote: tuple[str, int],
+                 rates_hz: dict[int, float]) -> None:
+        self.name = name
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self.sock.bind((host, bind_port))
+        except OSError:
+            self.sock.close()
+            raise
+        self.sock.setblocking(False)
+        self.remote = remote
+        self.intervals_us = {msgid: int(round(1e6 / hz)) for msgid, hz in rates_hz.items() if hz > 0}
+        self.default_intervals_us = dict(self.intervals_us)
+        self.next_due_us: dict[int, int] = {}
+        self.outbox: list[bytes] = []
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.sock.close()
+
+
+class MavlinkApi:
+    """Serves one StubAutopilot's MAVLink API on UDP (see module docstring).
+
+    instance: vehicle instance i (ports 14580+i -> 14540+i, 18570+i -> 14550); defaults to
+        the autopilot's instance.
+    host: address to bind and to send to (127.0.0.1 by default).
+    gcs: also serve the GCS link.
+    clock: wall clock for the keep-alive (time.monotonic; injectable for tests).
+    """
+
+    def __init__(self, autopilot: StubAutopilot, instance: int | None = None, host: str = "127.0.0.1", *,
+                 api_bind_port: int | None = None, api_remote_port: int | None = None, gcs: bool = True,
+                 gcs_bind_port: int | None = None, gcs_remote_port: int = GCS_REMOTE_PORT,
+                 keepalive_wall_s: float = KEEPALIVE_WALL_S, clock: Callable[[], float] = time.monotonic) -> None:
+        self.autopilot = autopilot
+        self.instance = autopilot.instance if instance is None else instance
+        self.system_id = 1 + self.instance
+        self.component_id = 1
+        self.stats = ApiStats()
+        self._packer = MessagePacker(self.system_id, self.component_id)
+        self._clock = clock
+        self._keepalive_wall_s = keepalive_wall_s
+        i = self.instance
+        self.links: list[_Link] = []
+        try:
+            self.links.append(_Link(
+                "api", host, api_bind_port if api_bind_port is not None else API_BIND_BASE_PORT + i,
+                (host, api_remote_port if api_remote_port is not None else API_REMOTE_BASE_PORT + i),
+                telemetry.ONBOARD_RATES_HZ))
+            if gcs:
+                self.links.append(_Link(
+                    "gcs", host, gcs_bind_port if gcs_bind_port is not None else GCS_BIND_BASE_PORT + i,
+                    (host, gcs_remote_port), telemetry.GCS_RATES_HZ))
+        except OSError:
+            self.close()
+            raise
+        self._last_stream_time_us: int | None = None
+        self._last_heartbeat_wall = -math.inf
+        self._texts_sent = 0
+        self._handlers: dict[int, Callable[[_Link, mavlink.Frame, tuple[str, int]], None]] = {
+            d.MAVLINK_MSG_ID_HEARTBEAT: lambda *_: None,
+            d.MAVLINK_MSG_ID_COMMAND_LONG: self._on_command_long,
+            d.MAVLINK_MSG_ID_COMMAND_INT: self._on_command_int,
+            d.MAVLINK_MSG_ID_PARAM_REQUEST_LIST: self._on_param_request_list,
+            d.MAVLINK_MSG_ID_PARAM_REQUEST_READ: self._on_param_request_read,
+            d.MAVLINK_MSG_ID_PARAM_SET: self._on_param_set,
+            d.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED: self._on_set_position_target_local_ned,
+            d.MAVLINK_MSG_ID_TIMESYNC: self._on_timesync,
+        }
+
+    # --- lifecycle ------------------------------------------------------------------------------
+    @property
+    def ports(self) -> dict[str, int]:
+        """Bound local port per link name."""
+        return {link.name: link.sock.getsockname()[1] for link in self.links}
+
+    def filenos(self) -> list[int]:
+        """Socket descriptors (for select in a blocking loop)."""
+        return [link.sock.fileno() for link in self.links]
+
+    def close(self) -> None:
+        """Close every socket (frees the ports)."""
+        for link in self.links:
+            link.close()
+        self.links = []
+
+    def __enter__(self) -> MavlinkApi:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- pump -----------------------------------------------------------------------------------
+    def pump(self) -> None:
+        """Read and handle every waiting datagram, then send the streams that are due."""
+        for link in self.links:
+            self._receive(link)
+        self._send_streams()
+        for link in self.links:
+            self._flush(link)
+
+    def _receive(self, link: _Link) -> None:
+        sock = link.sock
+        while True:
+            try:
+                data, address = sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except ConnectionRefusedError:
+                continue  # ICMP port unreachable from an earlier send: nobody listening yet
+            except OSError as exc:
+                log.debug("%s link receive error: %s", link.name, exc)
+                return
+            self.stats.datagrams += 1
+            parser = mavlink.FrameParser()
+            frames = parser.feed(data)
+            self.stats.garbage_bytes += parser.stats.garbage_bytes
+            self.stats.bad_crc += parser.stats.bad_crc
+            if not frames:
+                self.stats.garbage_datagrams += 1
+                continue
+            link.remote = address
+            for frame in frames:
+                self.stats.frames += 1
+                handler = self._handlers.get(frame.msgid)
+                if handler is None:
+                    ignored = self.stats.ignored_messages
+                    ignored[frame.msgid] = ignored.get(frame.msgid, 0) + 1
+                    continue
+                try:
+                    handler(link, frame, address)
+                except Exception:  # a malformed message must not kill the vehicle
+                    log.exception("%s link: error handling message %d", link.name, frame.msgid)
+
+    def _flush(self, link: _Link) -> None:
+        if not link.outbox:
+            return
+        data = b"".join(link.outbox)
+        link.outbox.clear()
+        try:
+            link.sock.sendto(data, link.remote)
+            self.stats.sent_datagrams += 1
+        except (BlockingIOError, ConnectionRefusedError, InterruptedError):
+            self.stats.send_errors += 1
+        except OSError as exc:
+            self.stats.send_errors += 1
+            log.debug("%s link send error: %s", link.name, exc)
+
+    def _queue(self, link: _Link, cls: type, fields: dict) -> None:
+        link.outbox.append(self._packer.pack(cls, **fields))
+
+    def send_now(self, msgid: int, link: _Link | None = None) -> bool:
+        """Queue one message (a BUILDERS id) on one or all links; False when it has no data yet."""
+        entry = telemetry.BUILDERS.get(msgid)
+        if entry is None:
+            return False
+        cls, build = entry
+        fields = build(self.autopilot)
+        if fields is None:
+            return False
+        for target in [link] if link is not None else self.links:
+            self._queue(target, cls, fields)
+        return True
+
+    def _send_streams(self) -> None:
+        now_us = self.autopilot.time_us
+        wall = self._clock()
+        if now_us != self._last_stream_time_us:
+            self._last_stream_time_us = now_us
+            for link in self.links:
+                due = link.next_due_us
+                for msgid, interval in link.intervals_us.items():
+                    t = due.get(msgid)
+                    if t is not None and now_us < t <= now_us + interval:
+                        continue  # not due yet
+                    # stay on a fixed grid; after a gap or a clock reset start a new one
+                    on_grid = t is not None and 0 <= now_us - t < interval
+                    due[msgid] = t + interval if on_grid else now_us + interval
+                    if self.send_now(msgid, link) and msgid == d.MAVLINK_MSG_ID_HEARTBEAT:
+                        self._last_heartbeat_wall = wall
+            self._send_status_texts()
+        if wall - self._last_heartbeat_wall >= self._keepalive_wall_s:
+            # simulated time is frozen (or crawling): keep MAVSDK's 3 s wall timeout at bay
+            self.send_now(d.MAVLINK_MSG_ID_HEARTBEAT)
+            self._last_heartbeat_wall = wall
+            self.stats.keepalives += 1
+
+    def _send_status_texts(self) -> None:
+        texts = self.autopilot.commander.status_texts
+        for severity, text in list(texts):
+            for link in self.links:
+                self._queue(link, d.MAVLink_statustext_message,
+                            dict(severity=severity, text=text.encode()[:50]))
+        texts.clear()
+
+    # --- incoming -------------------------------------------------------------------------------
+    def _for_us(self, target_system: int, target_component: int) -> bool:
+        return target_system in (0, self.system_id) and target_component in (0, self.component_id)
+
+    def _ack(self, link: _Link, frame: mavlink.Frame, command: int, result: int) -> None:
+        self._queue(link, d.MAVLink_command_ack_message,
+                    dict(command=command, result=int(result), target_system=frame.system_id,
+                         target_component=frame.component_id))
+        self._flush(link)
+
+    def _on_command_long(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+        p1, p2, p3, p4, p5, p6, p7, command, ts, tc, _confirmation = _CMD_STRUCT_LONG.unpack(frame.payload)
+        if not self._for_us(ts, tc):
+            return
+        self._command(link, frame, command, (p1, p2, p3, p4, p5, p6, p7))
+
+    def _on_command_int(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+        p1, p2, p3, p4, x, y, z, command, ts, tc, _frame, _cur, _auto = _CMD_STRUCT_INT.unpack(frame.payload)
+        if not self._for_us(ts, tc):
+            return
+        self._command(link, frame, command, (p1, p2, p3, p4, float(x), float(y), z))
+
+    def _command(self, link: _Link, frame: mavlink.Frame, command: int, p: tuple[float, ...]) -> None:
+        self.stats.commands += 1
+        ap = self.autopilot
+        result: int
+        if command == d.MAV_CMD_COMPONENT_ARM_DISARM:
+            if p[0] >= 0.5:
+                result = ap.arm()
+            else:
+                result = ap.disarm(force=int(p[1]) == FORCE_DISARM_MAGIC if p[1] == p[1] else False)
+        elif command == d.MAV_CMD_NAV_TAKEOFF:
+            result = ap.takeoff()
+        elif command == d.MAV_CMD_NAV_LAND:
+            result = ap.land()
+        elif command == d.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            result = ap.return_to_launch()
+        elif command == d.MAV_CMD_DO_SET_MODE:
+            base_mode = int(p[0]) if p[0] == p[0] else 0
+            if base_mode & d.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                result = ap.set_mode(int(p[1]) & 0xFF, int(p[2]) & 0xFF if p[2] == p[2] else 0)
+            else:
+                result = CommandResult.UNSUPPORTED
+        elif command == d.MAV_CMD_SET_MESSAGE_INTERVAL:
+            result = self._set_message_interval(link, p[0], p[1])
+        elif command == d.MAV_CMD_REQUEST_MESSAGE:
+            msgid = int(p[0]) if p[0] == p[0] else -1
+            result = CommandResult.ACCEPTED if msgid in telemetry.BUILDERS else CommandResult.DENIED
+            self._ack(link, frame, command, result)
+            if result == CommandResult.ACCEPTED and not self.send_now(msgid, link):
+                log.debug("requested message %d has no data yet", msgid)
+            self._flush(link)
+            return
+        elif command == d.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            self._ack(link, frame, command, CommandResult.ACCEPTED)
+            self.send_now(d.MAVLINK_MSG_ID_AUTOPILOT_VERSION, link)
+            self._flush(link)
+            return
+        elif command == d.MAV_CMD_GET_HOME_POSITION:
+            result = CommandResult.ACCEPTED if ap.home is not None else CommandResult.TEMPORARILY_REJECTED
+            self._ack(link, frame, command, result)
+            self.send_now(d.MAVLINK_MSG_ID_HOME_POSITION, link)
+            self._flush(link)
+            return
+        else:
+            result = CommandResult.UNSUPPORTED
+            self.stats.unsupported_commands += 1
+        self._ack(link, frame, command, result)
+        # an accepted state change is visible at once, not at the next 1 Hz heartbeat
+        if result == CommandResult.ACCEPTED and command != d.MAV_CMD_SET_MESSAGE_INTERVAL:
+            self.send_now(d.MAVLINK_MSG_ID_HEARTBEAT, link)
+            self._flush(link)
+
+    def _set_message_interval(self, link: _Link, msgid_f: float, interval_f: float) -> CommandResult:
+        if msgid_f != msgid_f or int(msgid_f) not in telemetry.BUILDERS:
+            return CommandResult.DENIED
+        msgid = int(msgid_f)
+        interval = int(interval_f) if interval_f == interval_f else 0
+        if interval < 0:
+            link.intervals_us.pop(msgid, None)
+        elif interval == 0:
+            default = link.default_intervals_us.get(msgid)
+            if default is None:
+                link.intervals_us.pop(msgid, None)
+            else:
+                link.intervals_us[msgid] = default
+        else:
+            link.intervals_us[msgid] = interval
+        link.next_due_us.pop(msgid, None)
+        return CommandResult.ACCEPTED
+
+    # parameters ---------------------------------------------------------------------------------
+    def _param_value(self, link: _Link, param: Param) -> None:
+        table = self.autopilot.params
+        self._queue(link, d.MAVLink_param_value_message,
+                    dict(param_id=param.name.encode(), param_value=param.wire_value, param_type=param.param_type,
+                         param_count=len(table), param_index=table.index_of(param.name)))
+
+    def _on_param_request_list(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+        ts, tc = mavlink.unpack_payload(frame)
+        if not self._for_us(ts, tc):
+            return
+        for param in self.autopilot.params:
+            self._param_value(link, param)
+            if len(link.outbox) >= 20:   # keep datagrams well under the UDP size limits
+                self._flush(link)
+        self._flush(link)
+
+    def _on_param_request_read(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+        index, ts, tc, raw_id = mavlink.unpack_payload(frame)
+        if not self._for_us(ts, tc):
+            return
+        table = self.autopilot.params
+        param = table.at(index) if index >= 0 else table.get(raw_id.split(b"\0", 1)[0].decode(errors="replace"))
+        if param is None:
+            return  # PX4 stays silent on unknown names; the client times out
+        self._param_value(link, param)
+        self._flush(link)
+
+    def _on_param_set(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+        wire_value, ts, tc, raw_id, param_type = mavlink.unpack_payload(frame)
+        if not self._for_us(ts, tc):
+            return
+        table = self.autopilot.params
+        param = table.get(raw_id.split(b"\0", 1)[0].decode(errors="replace"))
+        if param is None:
+            return
+        if param_type not in (MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32):
+            param_type = param.param_type
+        value = wire_to_value(wire_value, param_type)
+        with contextlib.suppress(ValueError):
+            table.set(param.name, value)
+            self.stats.param_sets += 1
+        self._param_value(link, param)   # echo (the unchanged value when refused)
+        self._flush(link)
+
+    # offboard setpoints ---------------------------------------------------------------------------
+    def _on_set_position_target_local_ned(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+        (_t, x, y, z, vx, vy, vz, _afx, _afy, _afz, yaw, yaw_rate, mask, ts, tc,
+         coordinate_frame) = mavlink.unpack_payload(frame)
+        if not self._for_us(ts, tc):
+            return
+        ap = self.autopilot
+        est = ap.estimate
+        position = (x, y, z) if not mask & _IGNORE_POS else (_NAN, _NAN, _NAN)
+        velocity = (vx, vy, vz) if not mask & _IGNORE_VEL else (_NAN, _NAN, _NAN)
+        if coordinate_frame in (d.MAV_FRAME_BODY_NED, d.MAV_FRAME_BODY_OFFSET_NED):
+            # body frames are yaw-rotated (PX4 ignores roll and pitch here)
+            yaw_now = est.euler_rad[2]
+            half = 0.5 * yaw_now
+            q_yaw = (math.cos(half), 0.0, 0.0, math.sin(half))
+            velocity = quat_rotate(q_yaw, velocity) if velocity[0] == velocity[0] else velocity
+            if position[0] == position[0]:
+                position = quat_rotate(q_yaw, position)
+        if coordinate_frame in (d.MAV_FRAME_LOCAL_OFFSET_NED, d.MAV_FRAME_BODY_OFFSET_NED) and position[0] == position[0]:
+            p = est.position_ned_m
+            position = (p[0] + position[0], p[1] + position[1], p[2] + position[2])
+        elif coordinate_frame not in (d.MAV_FRAME_LOCAL_NED, d.MAV_FRAME_BODY_NED, d.MAV_FRAME_LOCAL_OFFSET_NED,
+                                      d.MAV_FRAME_BODY_OFFSET_NED):
+            return
+        if position[0] != position[0] and velocity[0] != velocity[0]:
+            return  # acceleration-only setpoints are not supported by the stub
+        ap.set_offboard_setpoint(position, velocity,
+                                 yaw if not mask & _IGNORE_YAW else _NAN,
+                                 yaw_rate if not mask & _IGNORE_YAW_RATE else _NAN)
+        self.stats.setpoints += 1
+
+    def _on_timesync(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+        tc1, ts1 = mavlink.unpack_payload(frame)[:2]
+        if tc1 == 0:   # a request: answer with our (simulated) clock in ns
+            self._queue(link, d.MAVLink_timesync_message, dict(tc1=self.autopilot.time_us * 1000, ts1=ts1))
+            self._flush(link)

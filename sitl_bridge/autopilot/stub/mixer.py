@@ -1,0 +1,103 @@
+"""Quad-X mixer: collective thrust and normalised torques -> motor outputs in [0, 1].
+
+PX4 motor order (Part A6 of the protocol sheet): 1 front-right CCW, 2 back-left CCW,
+3 front-left CW, 4 back-right CW. Motor outputs follow the simulator's rotor map
+(omega = 1000 u + 100 rad/s, thrust = k_f omega^2), which the mixer inverts so that the
+controller can think in thrust, like PX4 with a thrust model factor.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class QuadGeometry:
+    """Airframe constants the mixer and rate controller need (defaults: Gazebo Iris)."""
+
+    # rotor positions in body FRD (x forward, y right), metres, PX4 motor order 1..4
+    rotor_xy_frd_m: tuple[tuple[float, float], ...] = ((0.13, 0.22), (-0.13, -0.20), (0.13, -0.22), (-0.13, 0.20))
+    # +1: CCW seen from above (yaw torque +k_m T in FRD), -1: CW
+    rotor_direction: tuple[int, ...] = (1, 1, -1, -1)
+    thrust_coefficient_n_s2: float = 5.84e-6   # k_f: thrust = k_f * omega^2
+    moment_constant_m: float = 0.06            # k_m: yaw torque = k_m * thrust
+    omega_scale_rad_s: float = 1000.0          # omega = scale * u + offset
+    omega_offset_rad_s: float = 100.0
+    omega_max_rad_s: float = 1100.0
+    mass_kg: float = 1.55
+    inertia_kg_m2: tuple[float, float, float] = (0.029125, 0.029125, 0.055225)
+
+    @property
+    def rotor_max_thrust_n(self) -> float:
+        """Thrust of one rotor at full command."""
+        return self.thrust_coefficient_n_s2 * self.omega_max_rad_s**2
+
+    @property
+    def hover_thrust(self) -> float:
+        """Collective thrust (fraction of the maximum) that balances gravity."""
+        return self.mass_kg * 9.80665 / (4.0 * self.rotor_max_thrust_n)
+
+
+class QuadXMixer:
+    """Maps (collective thrust in [0,1], roll/pitch/yaw normalised torque) to motor outputs."""
+
+    def __init__(self, geometry: QuadGeometry | None = None) -> None:
+        self.geometry = g = geometry or QuadGeometry()
+        t_max = g.rotor_max_thrust_n
+        # Rows: total thrust (N), roll, pitch, yaw torque (N m) from per-rotor thrusts (N).
+        effectiveness = np.array([
+            [1.0] * 4,
+            [-y for _, y in g.rotor_xy_frd_m],
+            [x for x, _ in g.rotor_xy_frd_m],
+            [d * g.moment_constant_m for d in g.rotor_direction],
+        ])
+        # Normalised torque 1 = the torque of half the rotors at full thrust against the others.
+        self.max_torque_n_m = tuple(float(np.sum(np.abs(effectiveness[k])) * t_max / 2) for k in (1, 2, 3))
+        mix = np.linalg.inv(effectiveness)  # per-rotor thrust (N) from (T, tau_x, tau_y, tau_z)
+        # Per-rotor normalised thrust (fraction of t_max) per unit of normalised input.
+        self._thrust_col = tuple(float(mix[i, 0] * 4.0) for i in range(4))  # collective 1 -> 4 t_max
+        self._torque_cols = tuple(
+            tuple(float(mix[i, k + 1] * self.max_torque_n_m[k] / t_max) for k in range(3)) for i in range(4)
+        )
+        self._omega_max = g.omega_max_rad_s
+        self._u_scale = g.omega_scale_rad_s
+        self._u_offset = g.omega_offset_rad_s
+        self.saturated = False
+
+    def mix(self, thrust: float, torque_norm: tuple[float, float, float]) -> tuple[float, float, float, float]:
+        """Motor outputs u1..u4 in [0, 1].
+
+        Saturation is resolved like PX4's non-airmode allocation: yaw is given up first, then the
+        collective shifts to keep roll/pitch authority, finally outputs are clipped.
+        """
+        cols = self._torque_cols
+        tx, ty, tz = torque_norm
+        rp = [c[0] * tx + c[1] * ty for c in cols]
+        yaw = [c[2] * tz for c in cols]
+        base = [self._thrust_col[i] * thrust for i in range(4)]
+        out = [base[i] + rp[i] + yaw[i] for i in range(4)]
+        hi, lo = max(out), min(out)
+        self.saturated = hi > 1.0 or lo < 0.0
+        if self.saturated:
+            # Reduce yaw until roll/pitch + collective fit (or yaw is gone).
+            spread_rp = max(base[i] + rp[i] for i in range(4)) - min(base[i] + rp[i] for i in range(4))
+            spread = hi - lo
+            if spread > 1.0 and spread > spread_rp:
+                scale = max(0.0, (1.0 - spread_rp) / (spread - spread_rp)) if spread_rp < 1.0 else 0.0
+                out = [base[i] + rp[i] + yaw[i] * scale for i in range(4)]
+                hi, lo = max(out), min(out)
+            # Shift the collective so that the differential part fits.
+            if hi - lo <= 1.0:
+                shift = (1.0 - hi) if hi > 1.0 else (-lo if lo < 0.0 else 0.0)
+                out = [o + shift for o in out]
+        sqrt = math.sqrt
+        omega_max, scale, offset = self._omega_max, self._u_scale, self._u_offset
+        motors = []
+        for t in out:
+            t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
+            u = (omega_max * sqrt(t) - offset) / scale
+            motors.append(0.0 if u < 0.0 else 1.0 if u > 1.0 else u)
+        return (motors[0], motors[1], motors[2], motors[3])

@@ -1,0 +1,115 @@
+"""Tiny pure-python vector and quaternion helpers for the stub's per-step math.
+
+The controller runs once per 4 ms lockstep step on 3-vectors; plain tuples and floats are
+several times faster than numpy at that size. Quaternions are (w, x, y, z), Hamilton
+convention, rotating body (FRD) vectors into the world (NED) frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+
+
+def norm(v: Vec3) -> float:
+    """Euclidean length."""
+    return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+
+
+def clamp(value: float, low: float, high: float) -> float:
+    """value limited to [low, high]."""
+    return low if value < low else high if value > high else value
+
+
+def wrap_pi(angle_rad: float) -> float:
+    """Angle wrapped into [-pi, pi)."""
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def quat_multiply(a: Quat, b: Quat) -> Quat:
+    """Hamilton product a * b."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def quat_conjugate(q: Quat) -> Quat:
+    """Inverse of a unit quaternion."""
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def quat_normalize(q: Quat) -> Quat:
+    """Unit quaternion with positive w (the shorter of the two equivalent rotations)."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if q[0] < 0.0:
+        n = -n
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+def quat_rotate(q: Quat, v: Vec3) -> Vec3:
+    """Rotate v by q (body -> world when q is the attitude)."""
+    w, x, y, z = q
+    vx, vy, vz = v
+    # v + 2w(u x v) + 2u x (u x v), u = (x, y, z)
+    tx = 2.0 * (y * vz - z * vy)
+    ty = 2.0 * (z * vx - x * vz)
+    tz = 2.0 * (x * vy - y * vx)
+    return (
+        vx + w * tx + y * tz - z * ty,
+        vy + w * ty + z * tx - x * tz,
+        vz + w * tz + x * ty - y * tx,
+    )
+
+
+def quat_rotate_inverse(q: Quat, v: Vec3) -> Vec3:
+    """Rotate v by the inverse of q (world -> body when q is the attitude)."""
+    return quat_rotate((q[0], -q[1], -q[2], -q[3]), v)
+
+
+def quat_to_euler(q: Quat) -> Vec3:
+    """(roll, pitch, yaw) in rad, ZYX convention as PX4 reports them."""
+    w, x, y, z = q
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(clamp(2.0 * (w * y - z * x), -1.0, 1.0))
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return (roll, pitch, yaw)
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> Quat:
+    """Quaternion from ZYX Euler angles in rad."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    )
+
+
+def quat_yaw(q: Quat) -> float:
+    """Heading (yaw) in rad of an attitude quaternion."""
+    w, x, y, z = q
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def quat_from_two_vectors(src: Vec3, dst: Vec3) -> Quat:
+    """Shortest rotation taking unit vector src onto unit vector dst."""
+    cx = src[1] * dst[2] - src[2] * dst[1]
+    cy = src[2] * dst[0] - src[0] * dst[2]
+    cz = src[0] * dst[1] - src[1] * dst[0]
+    dot = src[0] * dst[0] + src[1] * dst[1] + src[2] * dst[2]
+    if dot < -0.999999:
+        # Opposite vectors: rotate 180 deg about any axis orthogonal to src.
+        axis = (0.0, -src[2], src[1]) if abs(src[0]) < 0.9 else (-src[2], 0.0, src[0])
+        n = norm(axis)
+        return (0.0, axis[0] / n, axis[1] / n, axis[2] / n)
+    return quat_normalize((1.0 + dot, cx, cy, cz))

@@ -1,0 +1,111 @@
+"""`sitl-bridge bench --env`: env steps per second, real-time factor and reset time per backend.
+
+Flies the obstacle scenario (one drone, 35 + 6 + 6 lidar rays in every observation) with a
+seeded random policy for `--seconds` of simulated time per backend (`direct`, then `stub` on
+free vehicle instances), resetting whenever an episode ends, and prints:
+
+* steps/s: env steps per wall second (each step = 1 s of simulated flight by default);
+* real-time factor: simulated seconds flown in steps per wall second spent in `step()`;
+* reset: wall seconds per `reset()` (mean and max), the in-place episode start included.
+"""
+
+from __future__ import annotations
+
+import argparse
+import socket
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sitl_bridge.envs import make_env, worlds_dir
+
+SCENARIO = "obstacle.yaml"
+BACKENDS = ("direct", "stub")
+
+
+@dataclass
+class EnvFigures:
+    """What one backend achieved."""
+
+    backend: str
+    steps: int
+    step_wall_s: float
+    sim_s: float
+    resets: list[float]
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.step_wall_s if self.step_wall_s > 0 else 0.0
+
+    @property
+    def real_time_factor(self) -> float:
+        return self.sim_s / self.step_wall_s if self.step_wall_s > 0 else 0.0
+
+    def line(self) -> str:
+        return (f"{self.backend:>7}: {self.steps_per_s:7.1f} env steps/s, real-time factor "
+                f"{self.real_time_factor:6.1f}x, reset {np.mean(self.resets):.3f} s mean / "
+                f"{np.max(self.resets):.3f} s max ({len(self.resets)} resets, {self.steps} steps)")
+
+
+def _free_instance() -> int:
+    """A vehicle instance whose HIL TCP port (4560+i) and API ports are free."""
+    for instance in range(200, 2000, 7):
+        ok = True
+        for port, kind in ((4560 + instance, socket.SOCK_STREAM), (14580 + instance, socket.SOCK_DGRAM),
+                           (14540 + instance, socket.SOCK_DGRAM), (18570 + instance, socket.SOCK_DGRAM)):
+            with socket.socket(socket.AF_INET, kind) as s:
+                try:
+                    s.bind(("127.0.0.1", port))
+                except OSError:
+                    ok = False
+                    break
+        if ok:
+            return instance
+    raise RuntimeError("no free vehicle instance for the stub backend")
+
+
+def measure(backend: str, scenario: Path, seconds: float, seed: int = 0) -> EnvFigures:
+    """Fly `seconds` of simulated time of random actions on `backend`."""
+    instance = _free_instance() if backend != "direct" else 0
+    env = make_env(scenario, autopilot=backend, speed_factor=0.0, seed=seed, instance_base=instance)
+    rng = np.random.default_rng(seed)
+    step_s = env.scenario.task.action.step_s
+    figures = EnvFigures(backend, 0, 0.0, 0.0, [])
+    try:
+        env.reset(seed=seed)  # first start builds everything; not a reset figure
+        while figures.sim_s < seconds:
+            t0 = time.perf_counter()
+            _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
+            figures.step_wall_s += time.perf_counter() - t0
+            figures.steps += 1
+            figures.sim_s += step_s
+            if terminated or truncated:
+                t0 = time.perf_counter()
+                env.reset()
+                figures.resets.append(time.perf_counter() - t0)
+        if not figures.resets:
+            t0 = time.perf_counter()
+            env.reset()
+            figures.resets.append(time.perf_counter() - t0)
+    finally:
+        env.close()
+    return figures
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the figures of every backend that can run here."""
+    seconds = float(getattr(args, "seconds", 20.0))
+    scenario = worlds_dir() / SCENARIO
+    print(f"env benchmark: {SCENARIO}, random actions, {seconds:g} s simulated per backend")
+    status = 0
+    for backend in BACKENDS:
+        try:
+            print(measure(backend, scenario, seconds).line(), flush=True)
+        except ImportError as exc:
+            print(f"{backend:>7}: unavailable ({exc})")
+        except Exception as exc:  # a failing backend is a result to report, not a crash
+            print(f"{backend:>7}: FAILED: {type(exc).__name__}: {exc}")
+            status = 1
+    return status

@@ -1,0 +1,135 @@
+"""`sitl-bridge bench --link`: real-time factor of the lockstep HIL link.
+
+The autopilot is the trivial `ConstantAutopilot` (answers every HIL_SENSOR at once), so the
+figures are the cost of physics + sensors + the simulator protocol + lockstep itself, i.e. the
+ceiling any autopilot can reach. Cases, all at speed factor 0 (as fast as lockstep allows):
+
+- peer in the lockstep thread (a pump: how the stub runs), 1 and 2 vehicles;
+- peer in another process (how PX4 runs: every step is a TCP round trip between processes);
+- link only: precomputed sensor frames, no physics (the protocol's own cost per step).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from sitl_bridge.hil import HilError, HilLink, Lockstep
+from sitl_bridge.hil.peer import ConstantAutopilot
+from sitl_bridge.physics.simulation import MotorCommand, Simulation
+from sitl_bridge.sensors.suite import SensorSuite
+from sitl_bridge.world.loader import load_world
+
+WORLDS = Path(__file__).resolve().parents[2] / "worlds"
+
+
+def _free_links(count: int, start: int = 3000) -> list[HilLink]:
+    """`count` links on consecutive free instances (ports 4560+start... upward)."""
+    for first in range(start, start + 400, count):
+        links: list[HilLink] = []
+        try:
+            for k in range(count):
+                links.append(HilLink(first + k))
+            return links
+        except HilError:
+            for link in links:
+                link.close()
+    raise HilError("no free HIL ports for the benchmark")
+
+
+class _ReplaySim:
+    """Stands in for physics in the link-only case: time advances, nothing is computed."""
+
+    def __init__(self, states: list[Any], step_us: int) -> None:
+        self.states = states
+        self.step_us = step_us
+        self.time_us = 0
+
+    def state(self, vehicle: int) -> Any:
+        return self.states[vehicle]
+
+    def step(self, commands: list[MotorCommand]) -> None:
+        self.time_us += self.step_us
+
+
+class _ReplaySensors:
+    """Replays one second of real sensor frames (rates, GPS, mag, baro as in a real run)."""
+
+    def __init__(self, frames: list[Any]) -> None:
+        self.frames = frames
+        self.index = 0
+
+    def sample(self, state: Any, time_us: int) -> Any:
+        frame = self.frames[self.index % len(self.frames)]
+        self.index += 1
+        frame.time_us = time_us
+        return frame
+
+
+def _case(name: str, vehicles: int, seconds: float, *, mode: str) -> dict[str, float]:
+    world = load_world(WORLDS / ("empty.yaml" if vehicles == 1 else "two_drones_empty.yaml"))
+    sim = Simulation(world)
+    sensors: list[Any] = [SensorSuite(world.home, seed=i) for i in range(vehicles)]
+    if mode == "link-only":
+        frames = [[s.sample(sim.state(i), k * sim.step_us) for k in range(250)] for i, s in enumerate(sensors)]
+        states = [sim.state(i) for i in range(vehicles)]
+        sim.close()
+        sim = _ReplaySim(states, 4000)
+        sensors = [_ReplaySensors(f) for f in frames]
+    links = _free_links(vehicles)
+    peers: list[ConstantAutopilot] = []
+    processes: list[subprocess.Popen[bytes]] = []
+    try:
+        if mode == "process":
+            for link in links:
+                processes.append(subprocess.Popen(
+                    [sys.executable, "-m", "sitl_bridge.hil.peer", "-i", str(link.instance),
+                     "--base-port", str(link.port - link.instance)],
+                    stdin=subprocess.DEVNULL,
+                ))
+        else:
+            for link in links:
+                peer = ConstantAutopilot(link.instance, base_port=link.port - link.instance)
+                peer.connect()
+                peers.append(peer)
+        lockstep = Lockstep(sim, sensors, links, speed_factor=0, pumps=[p.pump for p in peers])
+        if not lockstep.accept_all(30.0):
+            raise HilError("benchmark peer did not connect")
+        lockstep.run_for(0.2)  # actuators flowing, caches warm
+        start = time.perf_counter()
+        lockstep.run_for(seconds)
+        wall = time.perf_counter() - start
+        result = {
+            "rtf": seconds / wall,
+            "us_per_step": wall / lockstep.steps_for(seconds) * 1e6,
+            "timeouts": lockstep.stats.timeouts,
+        }
+        print(f"  {name:<44} {vehicles} veh  {result['rtf']:7.1f}x real time  "
+              f"{result['us_per_step']:7.0f} us/step  timeouts {result['timeouts']}")
+        return result
+    finally:
+        for peer in peers:
+            peer.close()
+        for link in links:
+            link.close()
+        for process in processes:
+            process.terminate()
+            process.wait(5)
+        if hasattr(sim, "close"):
+            sim.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run every case for `args.seconds` of simulated time and print the figures."""
+    seconds = float(getattr(args, "seconds", 20.0))
+    print(f"bench link: lockstep HIL link, trivial autopilot, speed factor 0, {seconds:g} s simulated per case")
+    _case("physics + sensors + link, peer in-thread", 1, seconds, mode="pump")
+    _case("physics + sensors + link, peer in-thread", 2, seconds, mode="pump")
+    _case("physics + sensors + link, peer in a process", 1, seconds, mode="process")
+    _case("physics + sensors + link, peer in a process", 2, seconds, mode="process")
+    _case("link only (replayed frames), peer in-thread", 1, seconds, mode="link-only")
+    return 0

@@ -1,0 +1,72 @@
+"""`sitl-bridge bench --stub`: real-time factor of the full protocol path with the stub.
+
+Simulator -> HIL link (TCP) -> in-process stub autopilot -> MAVLink API (UDP) -> MAVSDK, at
+speed factor 0 (as fast as lockstep allows), for 1 and 2 vehicles. Two phases per case:
+`ground` (disarmed, streams and MAVSDK connected) and `flying` (armed, hovering in OFFBOARD
+with MAVSDK streaming velocity setpoints), each `--seconds` of simulated time in one run_for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import socket
+import time
+
+from sitl_bridge.client.fleet import Fleet
+from sitl_bridge.session import SimSession, default_world_path
+
+_PORT_OFFSETS = ((4560, socket.SOCK_STREAM), (14580, socket.SOCK_DGRAM),
+                 (14540, socket.SOCK_DGRAM), (18570, socket.SOCK_DGRAM))
+
+
+def _instance_free(instance: int) -> bool:
+    for base, kind in _PORT_OFFSETS:
+        with socket.socket(socket.AF_INET, kind) as sock:
+            try:
+                sock.bind(("127.0.0.1", base + instance))
+            except OSError:
+                return False
+    return True
+
+
+def free_instance_base(count: int, start: int = 200) -> int:
+    """First instance i >= start with instances i..i+count-1 all free (benches stay off 0)."""
+    for first in range(start, start + 1000):
+        if all(_instance_free(first + k) for k in range(count)):
+            return first
+    raise RuntimeError("no free vehicle instances for the benchmark")
+
+
+def measure(vehicles: int, seconds: float) -> dict[str, float]:
+    """Real-time factors {'ground': ..., 'flying': ...} for `vehicles` stub vehicles."""
+    base = free_instance_base(vehicles)
+    result: dict[str, float] = {}
+    with SimSession(default_world_path(), autopilot="stub", speed_factor=0, instance_base=base,
+                    num_vehicles=vehicles) as session, \
+            Fleet(session.instances, clock=session) as fleet:
+        fleet.wait_healthy()
+        result["ground"] = _timed_run(session, seconds)
+        fleet.arm()
+        fleet.takeoff(2.5)
+        fleet.start_offboard()
+        result["flying"] = _timed_run(session, seconds)
+        fleet.land()
+    return result
+
+
+def _timed_run(session: SimSession, seconds: float) -> float:
+    seconds = round(seconds / session.step_s) * session.step_s
+    start = time.perf_counter()
+    session.run_for(seconds)
+    return seconds / (time.perf_counter() - start)
+
+
+def run(args: argparse.Namespace) -> int:
+    seconds = float(getattr(args, "seconds", 20.0))
+    print(f"bench stub: full protocol path (HIL TCP + stub + MAVLink UDP + MAVSDK), speed factor 0, "
+          f"{seconds:g} s simulated per phase")
+    for vehicles in (1, 2):
+        rtf = measure(vehicles, seconds)
+        print(f"  {vehicles} vehicle(s): ground {rtf['ground']:6.1f}x real time, "
+              f"flying (offboard hover) {rtf['flying']:6.1f}x real time", flush=True)
+    return 0

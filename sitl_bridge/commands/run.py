@@ -1,0 +1,167 @@
+"""`sitl-bridge run`: the simulator, one autopilot per vehicle, the MAVLink API for clients.
+
+Serves PX4's MAVLink API on UDP 14580+i -> 14540+i per vehicle (MAVSDK, QGroundControl,
+MAVProxy connect as they would to PX4 SITL), prints a live status line, and with `--demo`
+flies the built-in MAVSDK offboard demo for every vehicle. Ctrl-C shuts everything down.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import sys
+import time
+
+from sitl_bridge.errors import ConfigError
+from sitl_bridge.hil.lockstep import parse_speed_factor
+from sitl_bridge.session import AUTOPILOTS, SimSession, default_world_path
+
+STATUS_PERIOD_S = 0.5
+"""Wall seconds between status lines."""
+
+
+def speed_factor_arg(text: str) -> float:
+    """`--speed-factor`: a number >= 0, or `max` (= 0, as fast as possible)."""
+    try:
+        return parse_speed_factor(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0 or 'max', got {text!r}") from None
+
+
+def _interrupt_on_sigterm() -> None:
+    """SIGTERM (docker stop, a supervisor) shuts down as cleanly as Ctrl-C."""
+    def handler(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    with contextlib.suppress(ValueError):  # not the main thread (tests calling main())
+        signal.signal(signal.SIGTERM, handler)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "run", help="run the simulator with autopilots and serve the MAVLink API",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("world", nargs="?", default=None,
+                        help="world file (default: worlds/empty.yaml of the installation)")
+    parser.add_argument("--autopilot", choices=AUTOPILOTS, default="stub",
+                        help="stub: built-in PX4-compatible stub (default); px4: real PX4 SITL "
+                             "(--px4-bin); external: wait for autopilots on TCP 4560+i")
+    parser.add_argument("--stub-process", action="store_true",
+                        help="run each stub as its own `sitl-bridge stub -i N` process "
+                             "(default: in-process, fastest)")
+    parser.add_argument("--px4-bin", default=os.environ.get("PX4_BIN"),
+                        help="PX4 SITL binary (bin/px4 of px4_sitl_default; default: $PX4_BIN)")
+    parser.add_argument("--px4-rootfs", default=None, help="PX4 ROMFS/etc directory (default: from the build tree)")
+    parser.add_argument("--speed-factor", type=speed_factor_arg, default=1.0,
+                        help="simulated seconds per wall second; 0 or 'max' = as fast as possible (default 1)")
+    parser.add_argument("--vehicles", type=int, default=None,
+                        help="number of vehicles (default: as many as the world defines)")
+    parser.add_argument("--duration", type=float, default=None,
+                        help="simulated seconds to run (default: until Ctrl-C)")
+    parser.add_argument("--instance-base", type=int, default=0,
+                        help="first vehicle instance (ports 4560+i, 14580+i -> 14540+i)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of physics and sensors")
+    parser.add_argument("--gui", action="store_true", help="open the pybullet GUI")
+    parser.add_argument("--demo", action="store_true",
+                        help="fly the built-in MAVSDK offboard demo with every vehicle, then exit")
+    parser.add_argument("--quiet", action="store_true", help="no live status line")
+    parser.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.vehicles is not None and args.vehicles < 1:
+        print("sitl-bridge run: --vehicles must be at least 1", file=sys.stderr)
+        return 2
+    if args.duration is not None and not args.duration > 0:
+        print("sitl-bridge run: --duration must be positive", file=sys.stderr)
+        return 2
+    _interrupt_on_sigterm()
+    try:
+        session = SimSession(
+            args.world or default_world_path(),
+            autopilot=args.autopilot,
+            speed_factor=args.speed_factor,
+            instance_base=args.instance_base,
+            seed=args.seed,
+            px4_bin=args.px4_bin,
+            px4_rootfs=args.px4_rootfs,
+            gui=args.gui,
+            num_vehicles=args.vehicles,
+            stub_process=args.stub_process,
+        )
+    except ConfigError as exc:
+        print(f"sitl-bridge run: {exc}", file=sys.stderr)
+        return 2
+    try:
+        with session:
+            _print_banner(session)
+            if args.demo:
+                return _run_demo(session, args)
+            return _serve(session, args)
+    except KeyboardInterrupt:
+        print("\ninterrupted; shut down cleanly", file=sys.stderr)
+        return 130
+    except ConfigError as exc:
+        print(f"sitl-bridge run: {exc}", file=sys.stderr)
+        return 2
+
+
+def _print_banner(session: SimSession) -> None:
+    speed = "max" if session.speed_factor == 0 else f"{session.speed_factor:g}x"
+    print(f"world {session.world.name}: {session.num_vehicles} vehicle(s), autopilot "
+          f"{session.autopilot}, speed {speed}", flush=True)
+    for i in session.instances:
+        print(f"  vehicle {i}: HIL tcp://127.0.0.1:{4560 + i}, MAVSDK udpin://127.0.0.1:{14540 + i}"
+              f" (autopilot sends from udp 14580+{i})", flush=True)
+
+
+def _serve(session: SimSession, args: argparse.Namespace) -> int:
+    """Run until `--duration` simulated seconds (free-running: until Ctrl-C), printing status."""
+    tty = sys.stdout.isatty()
+    if args.duration is not None:
+        session.run_for(_whole_steps(session, args.duration), wait=False)
+    else:
+        session.resume()
+    while True:
+        done = session.wait_held(STATUS_PERIOD_S) if args.duration is not None else False
+        if args.duration is None:
+            time.sleep(STATUS_PERIOD_S)  # pacing the status line, not the simulation
+        session.check()  # raises if the runner or an autopilot died
+        if done:
+            break
+        if not args.quiet:
+            line = session.status_line()
+            print(f"\r{line}\033[K" if tty else line, end="" if tty else "\n", flush=True)
+    if tty and not args.quiet:
+        print()
+    print(session.status_line(), flush=True)
+    print(f"done: {session.time_s:.2f} s simulated, real-time factor "
+          f"{session.overall_real_time_factor:.1f}x", flush=True)
+    return 0
+
+
+def _whole_steps(session: SimSession, seconds: float) -> float:
+    """`seconds` rounded down to whole physics steps (run_for is exact)."""
+    step_us = round(session.step_s * 1e6)
+    return (round(seconds * 1e6) // step_us) * step_us / 1e6
+
+
+def _run_demo(session: SimSession, args: argparse.Namespace) -> int:
+    """Fly the demo; `--duration` is then a simulated-time budget for the demo itself."""
+    from sitl_bridge.client.demo import run_demo  # mavsdk is only needed for the demo
+    from sitl_bridge.client.fleet import Fleet
+
+    started = time.monotonic()
+    sim_start = session.time_s
+    with Fleet(session.instances, clock=session) as fleet:
+        results = run_demo(fleet, report=lambda text: print(f"[{session.time_s:7.2f} s] {text}", flush=True))
+    wall = time.monotonic() - started
+    sim = session.time_s - sim_start
+    worst = max((r.error_m for r in results), default=0.0)
+    print(f"demo done: {sim:.1f} s simulated in {wall:.2f} s wall "
+          f"(real-time factor {sim / wall:.1f}x), worst leg error {worst:.2f} m", flush=True)
+    if args.duration is not None and session.time_s < args.duration:
+        session.run_for(_whole_steps(session, args.duration - session.time_s))
+    return 0

@@ -1,0 +1,76 @@
+"""`sitl-bridge train WORLD.yaml`: train a DQN agent on a scenario, crash-safe and resumable.
+
+Hyperparameters come from the scenario's `train:` section; every one can be overridden here
+(`--gamma 0.95`, `--episodes 500`, ... see `--help`). `--resume RUN_DIR` continues a run (killed or
+finished, e.g. with a larger `--episodes`); `--init-from` starts from another run's network.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import TYPE_CHECKING
+
+from sitl_bridge.errors import ConfigError
+from sitl_bridge.rl.config import add_config_arguments, load_train_config, overrides_from_args
+
+if TYPE_CHECKING:
+    from sitl_bridge.rl.trainer import Trainer
+
+AUTOPILOTS = ("direct", "stub", "px4")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("train", help="train a DQN agent on a scenario (resumable)",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("world", nargs="?", help="scenario file (worlds/*.yaml); not needed with --resume")
+    parser.add_argument("--autopilot", choices=AUTOPILOTS, default="direct",
+                        help="environment backend (direct: in-process, fastest)")
+    parser.add_argument("--seed", type=int, default=0, help="run seed (network, exploration, episodes)")
+    parser.add_argument("--out", default="runs", help="folder for the run directory (default runs/)")
+    parser.add_argument("--resume", metavar="RUN_DIR", help="continue this run from its newest good checkpoint")
+    parser.add_argument("--init-from", metavar="RUN_DIR_OR_CHECKPOINT",
+                        help="start from this run's network (curriculum; epsilon from transfer_epsilon_max)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_config_arguments(parser)
+    parser.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    # torch and the simulator load here, not when the CLI lists its commands.
+    from sitl_bridge.rl.checkpoint import CheckpointError
+    from sitl_bridge.rl.trainer import ShapeMismatch
+
+    try:
+        trainer = _build(args)
+    except (ConfigError, CheckpointError, ShapeMismatch) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    with trainer:
+        print(f"run directory: {trainer.run_dir}", file=sys.stderr)
+        result = trainer.train()
+        print(f"{result.episodes} episodes ({result.global_step} steps) in {result.wall_time_s:.1f} s this session; "
+              f"rolling success {result.success_rate:.0%}")
+        if result.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0:
+            print("greedy evaluation: " + trainer.evaluate().summary())
+    return 0
+
+
+def _build(args: argparse.Namespace) -> Trainer:
+    from sitl_bridge.rl.drones_env import scenario_env_factory
+    from sitl_bridge.rl.run_dir import RunSpec
+    from sitl_bridge.rl.trainer import Trainer
+
+    overrides = overrides_from_args(args)
+    progress = not args.no_progress
+    if args.resume:
+        if any(v is not None for k, v in overrides.items() if k != "episodes"):
+            raise ConfigError("command line: only --episodes can change when resuming (the run's "
+                              "config.yaml holds its hyperparameters)")
+        return Trainer.resume(args.resume, episodes=overrides["episodes"], progress=progress)
+    if not args.world:
+        raise ConfigError("command line: WORLD: expected a scenario file (or --resume RUN_DIR), got nothing")
+    config = load_train_config(args.world, overrides)
+    spec = RunSpec(world=args.world, autopilot=args.autopilot, seed=args.seed, init_from=args.init_from)
+    return Trainer.start(args.out, spec, config, scenario_env_factory(args.world, args.autopilot),
+                         progress=progress)

@@ -1,0 +1,174 @@
+"""`direct` backend: physics, sensors and the stub autopilot in one tight loop, no sockets.
+
+The fast path for training. Each physics step runs in the lockstep order of the protocol path
+(`sitl_bridge.hil.lockstep`): sample every vehicle's sensors at t, let its `StubAutopilot` answer
+with motor commands, step the physics. Commands reach the autopilot through the same commander
+methods the stub's MAVLink API calls (arm, takeoff, mode switch, offboard velocity setpoint),
+in the same order as the `stub` backend sends them through MAVSDK, so both fly alike. The
+offboard setpoint is refreshed at MAVSDK's 20 Hz (in simulated time) so the offboard-loss
+failsafe never fires. The lidar is cast once per `fly`/`reset` (observations need it only then).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from sitl_bridge.autopilot.stub.autopilot import StubAutopilot
+from sitl_bridge.autopilot.stub.modes import HOLD, CommandResult, LandedState, MainMode
+from sitl_bridge.autopilot.stub.params import ParamTable
+from sitl_bridge.envs.backends.base import (
+    ARM_POLL_S,
+    SETTLE_S,
+    STARTUP_TIMEOUT_S,
+    TAKEOFF_TOLERANCE_M,
+    BackendError,
+    Snapshot,
+)
+from sitl_bridge.physics import MotorCommand, Simulation
+from sitl_bridge.sensors import SensorSuite
+from sitl_bridge.sensors.lidar import Lidar
+from sitl_bridge.world import World
+
+SETPOINT_PERIOD_S = 0.05
+"""MAVSDK re-sends offboard setpoints at 20 Hz; the direct backend refreshes them as often."""
+
+
+def sensor_seed(seed: int, vehicle: int) -> int:
+    """Seed of vehicle `vehicle`'s sensor noise in an episode seeded `seed` (shared by backends;
+    `SimSession`'s own convention, so a session's first episode is seeded the same way)."""
+    return int(seed) * 1000 + vehicle
+
+
+class DirectBackend:
+    """Simulation + SensorSuite + StubAutopilot per vehicle, stepped in-process."""
+
+    name = "direct"
+
+    def __init__(self, world: World, *, start_altitude_m: float, seed: int = 0,
+                 gui: bool = False) -> None:
+        self.world = world
+        self.num_drones = world.num_vehicles
+        self.start_altitude_m = float(start_altitude_m)
+        self.sim = Simulation(world, seed=seed, gui=gui)
+        self.lidar = Lidar(self.sim, [v.lidar for v in world.vehicles])
+        self.sensors = [SensorSuite(world.home, seed=sensor_seed(seed, i), step_us=self.sim.step_us)
+                        for i in range(self.num_drones)]
+        self.autopilots: list[StubAutopilot] = []
+        self._collided = [False] * self.num_drones
+        self._velocities: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)] * self.num_drones
+        self._refresh_steps = max(1, round(SETPOINT_PERIOD_S * 1e6 / self.sim.step_us))
+        self.steps = 0
+        self._closed = False
+
+    # -- Backend API --------------------------------------------------------------------
+    def reset(self, seed: int | None = None) -> Snapshot:
+        seed = 0 if seed is None else int(seed)
+        self.sim.reset(seed)
+        self.lidar.reset()
+        for i, suite in enumerate(self.sensors):
+            suite.reset(sensor_seed(seed, i))
+        self.autopilots = [StubAutopilot(i, self._params()) for i in range(self.num_drones)]
+        self._velocities = [(0.0, 0.0, 0.0)] * self.num_drones
+        self._hover_start()
+        self._collided = [False] * self.num_drones
+        return self._snapshot()
+
+    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
+        if len(velocities_ned_m_s) != self.num_drones:
+            raise ValueError(f"expected {self.num_drones} velocities, got {len(velocities_ned_m_s)}")
+        self._collided = [False] * self.num_drones
+        self.set_velocities([tuple(float(c) for c in v) for v in velocities_ned_m_s])
+        self.run_steps(self.steps_for(duration_s))
+        return self._snapshot()
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self.sim.close()
+
+    # -- the loop -------------------------------------------------------------------------
+    def steps_for(self, seconds: float) -> int:
+        """Whole physics steps in `seconds` (rounded, as the lockstep's run_for)."""
+        return max(0, round(seconds * 1e6 / self.sim.step_us))
+
+    def set_velocities(self, velocities: list[tuple[float, float, float]]) -> None:
+        """Give every autopilot its offboard velocity setpoint now (MAVSDK's first send)."""
+        self._velocities = velocities
+        for ap, v in zip(self.autopilots, velocities, strict=True):
+            ap.set_velocity_setpoint_ned(v)
+
+    def run_steps(self, steps: int, until: Callable[[], bool] | None = None) -> int:
+        """Step `steps` times (or until `until()` holds after a step); returns steps taken."""
+        sim, sensors, autopilots = self.sim, self.sensors, self.autopilots
+        n = self.num_drones
+        refresh = self._refresh_steps
+        for k in range(steps):
+            if k and k % refresh == 0:
+                for ap, v in zip(autopilots, self._velocities, strict=True):
+                    ap.set_velocity_setpoint_ned(v)
+            time_us = sim.time_us
+            commands: list[MotorCommand] = [
+                autopilots[i].update(sensors[i].sample(sim.state(i), time_us)) for i in range(n)
+            ]
+            sim.step(commands)
+            self.steps += 1
+            for c in sim.collisions():
+                self._collided[c.vehicle] = True
+            if until is not None and until():
+                return k + 1
+        return steps
+
+    # -- episode start: the same sequence the `stub` backend sends through MAVSDK -------------
+    def _hover_start(self) -> None:
+        """Arm once the estimate allows, take off to the start altitude, offboard, settle."""
+        budget = self.steps_for(STARTUP_TIMEOUT_S)
+        poll = self.steps_for(ARM_POLL_S)
+        while not all(ap.arm() is CommandResult.ACCEPTED for ap in self.autopilots):
+            budget -= self.run_steps(poll)
+            if budget <= 0:
+                raise BackendError("direct: vehicles never became armable (no position estimate)")
+        for ap in self.autopilots:
+            if ap.takeoff() is not CommandResult.ACCEPTED:
+                raise BackendError(f"direct: vehicle {ap.instance} refused takeoff")
+        budget -= self.run_steps(budget, until=self._takeoff_done)
+        if not self._takeoff_done():
+            raise BackendError(f"direct: takeoff to {self.start_altitude_m:g} m not done within "
+                               f"{STARTUP_TIMEOUT_S:g} s of simulated time")
+        self.set_velocities([(0.0, 0.0, 0.0)] * self.num_drones)
+        for ap in self.autopilots:
+            if ap.set_mode(MainMode.OFFBOARD, 0) is not CommandResult.ACCEPTED:
+                raise BackendError(f"direct: vehicle {ap.instance} refused offboard")
+        self.run_steps(self.steps_for(SETTLE_S))
+
+    def _takeoff_done(self) -> bool:
+        """The MAVSDK client's test: in the air, back in HOLD, within tolerance of the altitude."""
+        for ap in self.autopilots:
+            home = ap.home
+            if home is None or ap.landed_state is not LandedState.IN_AIR:
+                return False
+            if (ap.commander.main_mode, ap.commander.sub_mode) != HOLD:
+                return False
+            altitude = home.position_ned_m[2] - ap.estimate.position_ned_m[2]
+            if abs(altitude - self.start_altitude_m) > TAKEOFF_TOLERANCE_M:
+                return False
+        return True
+
+    # -- internals ------------------------------------------------------------------------------
+    def _params(self) -> ParamTable:
+        """The parameters the `stub` backend's autopilots get (px4_params/ at full speed)."""
+        params = ParamTable(speed_factor=0.0)
+        params.set("MIS_TAKEOFF_ALT", self.start_altitude_m)
+        return params
+
+    def _snapshot(self) -> Snapshot:
+        layout = self.sim.layout
+        goals = tuple(layout.goal_of(i) for i in range(self.num_drones))
+        return Snapshot(
+            time_us=self.sim.time_us,
+            states=tuple(self.sim.state(i) for i in range(self.num_drones)),
+            scans=tuple(self.lidar.scan()),
+            collided=tuple(self._collided),
+            goals=goals,  # type: ignore[arg-type]  # load_scenario checks every vehicle has a goal
+        )

@@ -1,0 +1,188 @@
+"""`stub` and `px4` backends: the full protocol path through `SimSession` and MAVSDK.
+
+simulator -> HIL link (TCP) -> autopilot (in-process stub, or real PX4) -> MAVLink API (UDP)
+-> MAVSDK (`Fleet` of `OffboardClient`s) -> this backend. Every command of an episode goes
+through MAVSDK exactly as a user's script would send it; ground truth for observations and
+rewards is read from the simulation while it is held.
+
+Episode start (see `base`): the same sequence as `direct`, through MAVSDK: arm (retried every
+`ARM_POLL_S` while the autopilot denies it), takeoff to the start altitude, wait until hovering
+there in HOLD, offboard with a zero-velocity setpoint, settle.
+
+Reset between episodes:
+* `stub`: in place, on the same processes and ports. The simulation is re-spawned with the
+  episode's seed, the sensor noise re-seeded and the stubs re-initialised (disarmed, fresh
+  estimator), while the clock keeps counting up so that the stubs' stream schedules, the
+  lockstep's answer matching and MAVSDK all see monotonic time.
+* `px4`: PX4's estimator cannot be teleported (the thesis's position jump), so the session is
+  restarted: PX4 processes, links and MAVSDK clients, on the same instances.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+
+import numpy as np
+
+from sitl_bridge.client import Fleet, OffboardClientError
+from sitl_bridge.envs.backends.base import (
+    ARM_POLL_S,
+    SETTLE_S,
+    STARTUP_TIMEOUT_S,
+    TAKEOFF_TOLERANCE_M,
+    BackendError,
+    Snapshot,
+)
+from sitl_bridge.envs.backends.direct import sensor_seed
+from sitl_bridge.sensors.lidar import Lidar
+from sitl_bridge.session import SimSession
+from sitl_bridge.world import World
+
+
+class SessionBackend:
+    """A `SimSession` with a MAVSDK `Fleet`, flown through the Backend API."""
+
+    def __init__(self, world: World, *, autopilot: str, start_altitude_m: float,
+                 speed_factor: float = 0.0, seed: int = 0, instance_base: int = 0,
+                 px4_bin: str | None = None, gui: bool = False) -> None:
+        if autopilot not in ("stub", "px4"):
+            raise ValueError(f"SessionBackend runs 'stub' or 'px4', got {autopilot!r}")
+        self.name = autopilot
+        self.world = world
+        self.num_drones = world.num_vehicles
+        self.start_altitude_m = float(start_altitude_m)
+        self._options = dict(autopilot=autopilot, speed_factor=speed_factor,
+                             instance_base=instance_base, px4_bin=px4_bin, gui=gui)
+        self._seed = seed
+        self.session: SimSession | None = None
+        self.fleet: Fleet | None = None
+        self.lidar: Lidar | None = None
+        self._collided = [False] * self.num_drones
+        self._since_us = 0
+        self._episode_start_us = 0
+        self._closed = False
+
+    # -- Backend API --------------------------------------------------------------------
+    def reset(self, seed: int | None = None) -> Snapshot:
+        seed = 0 if seed is None else int(seed)
+        if self.session is not None and self.name == "px4":
+            self._stop()  # PX4: restart rather than teleport its estimator
+        if self.session is None:
+            self._start(seed)
+        # Also right after a start: connecting let time run, and every episode must begin
+        # from the same state as `direct`'s (fresh autopilot, freshly seeded sensors).
+        self._reset_in_place(seed)
+        self._hover_start()
+        self._collided = [False] * self.num_drones
+        self._since_us = self._session().time_us
+        return self._snapshot()
+
+    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
+        fleet = self._fleet()
+        session = self._session()
+        self._collided = [False] * self.num_drones
+        self._since_us = session.time_us
+        fleet.fly([np.asarray(v, dtype=float) for v in velocities_ned_m_s], duration_s)
+        self._record_collisions()  # the last step's, which no pump has seen yet
+        return self._snapshot()
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._stop()
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def _session(self) -> SimSession:
+        if self.session is None:
+            raise BackendError(f"{self.name}: not started (call reset())")
+        return self.session
+
+    def _fleet(self) -> Fleet:
+        if self.fleet is None:
+            raise BackendError(f"{self.name}: not started (call reset())")
+        return self.fleet
+
+    def _start(self, seed: int) -> None:
+        session = SimSession(self.world, seed=seed, **self._options)
+        try:
+            session.start()
+            self.session = session
+            # Each lockstep step runs the pumps before its physics step: they see the
+            # collisions of the step before, so every step of a `fly` is seen exactly once.
+            assert session.lockstep is not None
+            session.lockstep.pumps.append(self._record_collisions)
+            self.fleet = Fleet(session.instances, clock=session).connect()
+        except BaseException:
+            self.session = session
+            self._stop()
+            raise
+        assert session.sim is not None
+        self.lidar = Lidar(session.sim, [v.lidar for v in self.world.vehicles])
+
+    def _reset_in_place(self, seed: int) -> None:
+        session = self._session()
+        sim = session.sim
+        assert sim is not None
+        session.hold()
+        now_us = sim.time_us
+        sim.reset(seed)
+        sim.time_us = now_us  # monotonic clock across episodes (see module docstring)
+        for k, suite in enumerate(session.sensors):
+            suite.reset(sensor_seed(seed, k))
+        for stub in session.stubs:
+            # a fresh autopilot in the same object, which the HIL client and API refer to
+            stub.__init__(stub.instance, stub.params, ground_truth_estimate=stub.ground_truth_estimate)
+        if self.lidar is not None:
+            self.lidar.reset()
+        self._episode_start_us = now_us
+
+    def _stop(self) -> None:
+        if self.fleet is not None:
+            with contextlib.suppress(Exception):
+                self.fleet.close()
+            self.fleet = None
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        self.lidar = None
+
+    # -- episode start --------------------------------------------------------------------------
+    def _hover_start(self) -> None:
+        session, fleet = self._session(), self._fleet()
+        waited = 0.0
+        while True:
+            try:
+                fleet.arm()
+                break
+            except OffboardClientError:
+                if waited >= STARTUP_TIMEOUT_S:
+                    raise BackendError(f"{self.name}: vehicles never became armable") from None
+                session.run_for(ARM_POLL_S)
+                waited += ARM_POLL_S
+        fleet.takeoff(self.start_altitude_m, timeout_s=STARTUP_TIMEOUT_S,
+                      tolerance_m=TAKEOFF_TOLERANCE_M)
+        fleet.start_offboard()
+        session.run_for(SETTLE_S)
+
+    # -- observation ----------------------------------------------------------------------------
+    def _record_collisions(self) -> None:
+        sim = self.session.sim if self.session is not None else None
+        if sim is None:
+            return
+        for c in sim.collisions():
+            if c.time_us > self._since_us:
+                self._collided[c.vehicle] = True
+
+    def _snapshot(self) -> Snapshot:
+        session = self._session()
+        sim = session.sim
+        assert sim is not None and self.lidar is not None
+        layout = sim.layout
+        return Snapshot(
+            time_us=sim.time_us - self._episode_start_us,
+            states=tuple(sim.state(i) for i in range(self.num_drones)),
+            scans=tuple(self.lidar.scan()),
+            collided=tuple(self._collided),
+            goals=tuple(layout.goal_of(i) for i in range(self.num_drones)),  # type: ignore[arg-type]
+        )

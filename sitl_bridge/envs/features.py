@@ -1,0 +1,231 @@
+"""Observation features: each a small class with a size, fixed bounds and a function of `DroneView`.
+
+The scenario file lists features by name; the observation is their concatenation in that order.
+Each list item is a name (`- velocity`) or a one-key mapping with options
+(`- position: {decimals: 0}`, `- lidar: [horizontal, up, down]`, `- dummy: 11`).
+
+| name | size | value (world ENU, metres, m/s, radians) | bounds |
+|---|---|---|---|
+| `position` | 3 | x, y, z; `decimals: N` rounds (thesis: "rounded x,y,z") | workspace |
+| `orientation` | 3 | roll, pitch, yaw; `decimals: N` rounds | [-pi, pi] |
+| `velocity` | 3 | vx, vy, vz | +- max speed (5 m/s) |
+| `goal_position` | 3 | the drone's goal point | workspace |
+| `goal_offset` | 3 | goal minus position | +- workspace diagonal |
+| `own_id` | 1 | drone index | [0, drones-1] |
+| `own_priority` | 1 | the drone's priority (see below) | [0, 1] |
+| `other_priority` | count | the other drones' priorities | [0, 1] |
+| `transponder` | 6*count | other drones' x, y, z, vx, vy, vz (zeros if absent) | workspace, +- max speed |
+| `line_distance` | 1 | distance from the line through start and goal | [0, diagonal] |
+| `lidar` | rays | ray distances of the listed groups (default all three) | [0, range] |
+| `lidar_flags` | 2 | the lidar's near and crash flags (0/1) | [0, 1] |
+| `dummy` | N | zeros, to keep input sizes equal across scenarios | [-1, 1] |
+
+`count` defaults to drones-1 (at least 1). Priority: drones ranked by their start position
+(lower north, then lower east coordinate = lower priority, the thesis's "lower GPS coordinates
+hovers" rule), scaled to [0, 1]; with one drone it is 1.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from sitl_bridge.envs.view import DroneView, ScenarioLimits
+from sitl_bridge.errors import ConfigError, Node
+
+LIDAR_GROUPS = ("horizontal", "up", "down")
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One named block of the observation vector."""
+
+    name: str
+    low: np.ndarray
+    high: np.ndarray
+    compute: Callable[[DroneView], np.ndarray]
+
+    @property
+    def size(self) -> int:
+        return int(self.low.shape[0])
+
+    def __call__(self, view: DroneView) -> np.ndarray:
+        """The feature's values for `view`, finite and clipped to the bounds."""
+        value = np.asarray(self.compute(view), dtype=np.float64).reshape(-1)
+        value = np.nan_to_num(value, nan=0.0, posinf=0.0, neginf=0.0)
+        return np.clip(value, self.low, self.high)
+
+
+def _rounded(values: np.ndarray, decimals: int | None) -> np.ndarray:
+    return values if decimals is None else np.round(values, decimals)
+
+
+def _decimals(options: Node) -> int | None:
+    if options.value is None:
+        return None
+    options.reject_unknown({"decimals"})
+    node = options.get("decimals", None)
+    return None if node.value is None else node.integer(minimum=0, maximum=6)
+
+
+def _count(options: Node, limits: ScenarioLimits) -> int:
+    if options.value is None:
+        return max(1, limits.num_drones - 1)
+    options.reject_unknown({"count"})
+    return options.get("count", max(1, limits.num_drones - 1)).integer(minimum=1, maximum=64)
+
+
+def _padded(rows: np.ndarray, count: int, width: int) -> np.ndarray:
+    out = np.zeros((count, width))
+    n = min(count, rows.shape[0])
+    out[:n] = rows[:n]
+    return out
+
+
+def _position(options: Node, limits: ScenarioLimits) -> Feature:
+    decimals = _decimals(options)
+    return Feature("position", limits.workspace_low_enu_m.astype(float),
+                   limits.workspace_high_enu_m.astype(float),
+                   lambda v: _rounded(v.position_enu_m, decimals))
+
+
+def _orientation(options: Node, limits: ScenarioLimits) -> Feature:
+    decimals = _decimals(options)
+    bound = np.full(3, math.pi)
+    return Feature("orientation", -bound, bound, lambda v: _rounded(v.euler_enu_rad, decimals))
+
+
+def _velocity(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    bound = np.full(3, limits.max_speed_m_s)
+    return Feature("velocity", -bound, bound, lambda v: v.velocity_enu_m_s)
+
+
+def _goal_position(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    return Feature("goal_position", limits.workspace_low_enu_m.astype(float),
+                   limits.workspace_high_enu_m.astype(float), lambda v: v.goal_enu_m)
+
+
+def _goal_offset(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    bound = np.full(3, limits.diagonal_m)
+    return Feature("goal_offset", -bound, bound, lambda v: v.goal_enu_m - v.position_enu_m)
+
+
+def _own_id(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    return Feature("own_id", np.zeros(1), np.full(1, float(max(0, limits.num_drones - 1))),
+                   lambda v: np.array([float(v.index)]))
+
+
+def _own_priority(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    return Feature("own_priority", np.zeros(1), np.ones(1), lambda v: np.array([v.priority]))
+
+
+def _other_priority(options: Node, limits: ScenarioLimits) -> Feature:
+    count = _count(options, limits)
+    return Feature("other_priority", np.zeros(count), np.ones(count),
+                   lambda v: _padded(v.other_priorities.reshape(-1, 1), count, 1).reshape(-1))
+
+
+def _transponder(options: Node, limits: ScenarioLimits) -> Feature:
+    count = _count(options, limits)
+    speed = np.full(3, limits.max_speed_m_s)
+    low = np.tile(np.concatenate([limits.workspace_low_enu_m, -speed]), count)
+    high = np.tile(np.concatenate([limits.workspace_high_enu_m, speed]), count)
+
+    def compute(v: DroneView) -> np.ndarray:
+        rows = np.hstack([v.others_position_enu_m.reshape(-1, 3),
+                          v.others_velocity_enu_m_s.reshape(-1, 3)])
+        return _padded(rows, count, 6).reshape(-1)
+
+    return Feature("transponder", low.astype(float), high.astype(float), compute)
+
+
+def distance_from_line(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Distance of `point` from the infinite line through `a` and `b` (from `a` if they coincide)."""
+    direction = b - a
+    length = float(np.linalg.norm(direction))
+    if length < 1e-9:
+        return float(np.linalg.norm(point - a))
+    return float(np.linalg.norm(np.cross(point - a, direction / length)))
+
+
+def _line_distance(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    return Feature("line_distance", np.zeros(1), np.full(1, limits.diagonal_m),
+                   lambda v: np.array([distance_from_line(v.position_enu_m, v.start_enu_m,
+                                                          v.goal_enu_m)]))
+
+
+def _lidar(options: Node, limits: ScenarioLimits) -> Feature:
+    if options.value is None:
+        groups = list(LIDAR_GROUPS)
+    elif isinstance(options.value, list):
+        groups = [item.string(LIDAR_GROUPS) for item in options.list(min_len=1)]
+    else:
+        options.reject_unknown({"groups"})
+        groups = [item.string(LIDAR_GROUPS) for item in options.get("groups").list(min_len=1)]
+    size = sum(limits.lidar_rays[g] for g in groups)
+    return Feature("lidar", np.zeros(size), np.full(size, limits.lidar_range_m),
+                   lambda v: np.concatenate([v.lidar[g] for g in groups]))
+
+
+def _lidar_flags(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    return Feature("lidar_flags", np.zeros(2), np.ones(2),
+                   lambda v: np.array([float(v.near_obstacle), float(v.crashed)]))
+
+
+def _dummy(options: Node, limits: ScenarioLimits) -> Feature:
+    if isinstance(options.value, dict):
+        options.reject_unknown({"size"})
+        size = options.get("size").integer(minimum=1, maximum=10_000)
+    else:
+        size = options.integer(minimum=1, maximum=10_000)
+    # Always 0; declared in [-1, 1] because a Box dimension with low == high is degenerate.
+    return Feature("dummy", -np.ones(size), np.ones(size), lambda v: np.zeros(size))
+
+
+def _no_options(options: Node) -> None:
+    if options.value is not None and options.value != {}:
+        raise options.error("no options")
+
+
+FEATURES: dict[str, Callable[[Node, ScenarioLimits], Feature]] = {
+    "position": _position,
+    "orientation": _orientation,
+    "velocity": _velocity,
+    "goal_position": _goal_position,
+    "goal_offset": _goal_offset,
+    "own_id": _own_id,
+    "own_priority": _own_priority,
+    "other_priority": _other_priority,
+    "transponder": _transponder,
+    "line_distance": _line_distance,
+    "lidar": _lidar,
+    "lidar_flags": _lidar_flags,
+    "dummy": _dummy,
+}
+
+
+def parse_observation(node: Node, limits: ScenarioLimits) -> list[Feature]:
+    """Parse the `observation:` list into features, in order."""
+    features = []
+    for item in node.list(min_len=1):
+        if isinstance(item.value, str):
+            name, options = item.value, Node(None, item.source, item.path)
+        elif isinstance(item.value, dict) and len(item.value) == 1:
+            name, options = next(iter(item.items()))
+        else:
+            raise item.error("a feature name or a one-key mapping {name: options}")
+        if name not in FEATURES:
+            raise ConfigError(f"{item.source}: {item.path}: unknown observation feature "
+                              f"{name!r} (expected one of {', '.join(FEATURES)})")
+        features.append(FEATURES[name](options, limits))
+    return features

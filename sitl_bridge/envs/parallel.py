@@ -1,0 +1,115 @@
+"""`SitlParallelEnv`: the multi-drone PettingZoo ParallelEnv over any scenario file."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from sitl_bridge.client.actions import NUM_ACTIONS
+from sitl_bridge.envs.backends import make_backend
+from sitl_bridge.envs.backends.base import Backend
+from sitl_bridge.envs.manual import describe
+from sitl_bridge.envs.runner import EpisodeRunner
+from sitl_bridge.envs.scenario import Scenario, load_scenario
+from sitl_bridge.envs.single import observation_space
+
+
+class SitlParallelEnv(ParallelEnv):
+    """Several drones, each with its own observation and reward, acting simultaneously.
+
+    ## Description
+    The multi-drone form of `SitlEnv` (read its manual for actions, observation features,
+    rewards and episode end; they are the same per drone). Agents are the world's vehicle names
+    (e.g. `drone0`, `drone1`); every agent has the same `Discrete(8)` action space and the same
+    observation `Box`, so one shared policy can fly all of them (the thesis's TE and TW). All
+    drones fly their actions at once for the action's duration, then the simulation is held
+    while the agents decide.
+
+    An agent whose episode ends (goal, crash, out of the workspace, step limit) leaves
+    `env.agents`; its drone hovers where it is for the rest of the episode. The episode is over
+    when `env.agents` is empty. Head-on crashes end the episode for both drones.
+
+    ## Arguments
+    ```python
+    sitl_bridge.envs.make_parallel_env("worlds/two_drones_empty.yaml", autopilot="direct",
+                                       speed_factor=0.0, seed=None, instance_base=0, px4_bin=None)
+    ```
+    Same meanings as for `SitlEnv`.
+
+    ## Version History
+    * v0: initial version (thesis scenarios TE and TW; any scenario file works).
+    """
+
+    metadata = {"render_modes": [], "name": "sitl_bridge_parallel_v0"}
+
+    def __init__(self, scenario: str | Path | Scenario, *, autopilot: str = "direct",
+                 speed_factor: float = 0.0, seed: int | None = None, instance_base: int = 0,
+                 px4_bin: str | None = None, gui: bool = False,
+                 backend: Backend | None = None) -> None:
+        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        self.backend = backend or make_backend(
+            autopilot, self.scenario.world, start_altitude_m=self.scenario.task.start_altitude_m,
+            speed_factor=speed_factor, seed=0 if seed is None else seed,
+            instance_base=instance_base, px4_bin=px4_bin, gui=gui)
+        self.runner = EpisodeRunner(self.scenario, self.backend)
+        self.possible_agents = [v.name for v in self.scenario.world.vehicles]
+        self.agents: list[str] = []
+        self._index = {name: i for i, name in enumerate(self.possible_agents)}
+        self._observation_space = observation_space(self.scenario)
+        self._action_space = spaces.Discrete(NUM_ACTIONS)
+        self._rng = np.random.default_rng(seed)
+        self._closed = False
+
+    @functools.cache  # noqa: B019 - PettingZoo's idiom: one space per agent
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._observation_space
+
+    @functools.cache  # noqa: B019
+    def action_space(self, agent: str) -> spaces.Discrete:
+        return self._action_space
+
+    def reset(self, seed: int | None = None,
+              options: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        results = self.runner.reset(int(self._rng.integers(2**31 - 1)))
+        self.agents = list(self.possible_agents)
+        return ({a: results[self._index[a]].observation for a in self.agents},
+                {a: results[self._index[a]].info for a in self.agents})
+
+    def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
+        for agent, action in actions.items():
+            if agent not in self._index:
+                raise KeyError(f"unknown agent {agent!r} (agents: {self.possible_agents})")
+            if not self._action_space.contains(action):
+                raise ValueError(f"{agent}: action must be in 0..{NUM_ACTIONS - 1}, got {action!r}")
+        live = list(self.agents)
+        results = self.runner.step({self._index[a]: int(actions[a]) for a in live if a in actions})
+        observations, rewards, terminations, truncations, infos = {}, {}, {}, {}, {}
+        for agent in live:
+            r = results[self._index[agent]]
+            observations[agent] = r.observation
+            rewards[agent] = r.reward
+            terminations[agent] = r.terminated
+            truncations[agent] = r.truncated
+            infos[agent] = r.info
+        self.agents = [a for a in live if not (terminations[a] or truncations[a])]
+        return observations, rewards, terminations, truncations, infos
+
+    def state(self) -> np.ndarray:
+        """Global state: every drone's observation, concatenated in `possible_agents` order."""
+        return np.concatenate([r.observation for r in self.runner.last_results])
+
+    def describe(self) -> str:
+        """This scenario's manual (Markdown)."""
+        return describe(self.scenario)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self.backend.close()

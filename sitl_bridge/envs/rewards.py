@@ -1,0 +1,116 @@
+"""Reward terms: each its own small function of `DroneView`, scaled from the scenario file and
+logged under its own name (`info["reward_terms"]["closer_to_goal"]`), MuJoCo-Playground style.
+
+The scenario's `reward:` mapping gives each term a scale (`per_step: -5`) or a mapping with the
+scale and options (`closer_to_goal: {scale: 10, mode: binary}`). The step reward is the sum of
+`scale * term(view)` over the listed terms; unlisted terms are off.
+
+| term | unscaled value |
+|---|---|
+| `closer_to_goal` | `progress` (default): metres gained toward the goal this step (negative when moving away; potential-based shaping); `binary`: 1 when the distance shrank by more than `min_progress_m` (default 0.1), else 0 |
+| `goal_reached` | 1 on the step the goal is reached |
+| `per_step` | 1 every step |
+| `near_obstacle` | 1 when the lidar's near flag is set (and the drone did not crash) |
+| `crash` | 1 on a crash (collision, or the lidar crash flag when enabled) |
+| `out_of_workspace` | 1 when the drone left the workspace |
+
+Thesis ratios (chapter 5.3): closer +10..+20, goal +500..+1000, per step -5..-10, near -10..-50,
+crash -100..-500. Keep penalties on the scale of the other terms (a -1e12 crash made NaN weights).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from sitl_bridge.envs.view import DroneView
+from sitl_bridge.errors import ConfigError, Node
+
+REWARD_LIMIT = 1e5
+"""Largest accepted |scale|: bigger penalties make value estimates explode (thesis: -1e12)."""
+
+
+@dataclass(frozen=True)
+class RewardTerm:
+    """One scaled reward term."""
+
+    name: str
+    scale: float
+    term: Callable[[DroneView], float]
+
+    def __call__(self, view: DroneView) -> float:
+        return self.scale * float(self.term(view))
+
+
+def progress_toward_goal(view: DroneView) -> float:
+    """Metres gained toward the goal during the step."""
+    return view.previous_distance_to_goal_m - view.distance_to_goal_m
+
+
+def closer_binary(min_progress_m: float) -> Callable[[DroneView], float]:
+    """1 when the step brought the drone more than `min_progress_m` closer to its goal."""
+    return lambda view: 1.0 if progress_toward_goal(view) > min_progress_m else 0.0
+
+
+def goal_reached(view: DroneView) -> float:
+    return 1.0 if view.reached_goal else 0.0
+
+
+def per_step(view: DroneView) -> float:
+    return 1.0
+
+
+def near_obstacle(view: DroneView) -> float:
+    return 1.0 if view.near_obstacle and not view.crashed else 0.0
+
+
+def crash(view: DroneView) -> float:
+    return 1.0 if view.crashed else 0.0
+
+
+def out_of_workspace(view: DroneView) -> float:
+    return 1.0 if view.out_of_workspace else 0.0
+
+
+_SIMPLE_TERMS: dict[str, Callable[[DroneView], float]] = {
+    "goal_reached": goal_reached,
+    "per_step": per_step,
+    "near_obstacle": near_obstacle,
+    "crash": crash,
+    "out_of_workspace": out_of_workspace,
+}
+TERM_NAMES = ("closer_to_goal", *_SIMPLE_TERMS)
+
+
+def _scale(node: Node) -> float:
+    return node.number(minimum=-REWARD_LIMIT, maximum=REWARD_LIMIT)
+
+
+def _parse_term(name: str, node: Node) -> RewardTerm:
+    if name == "closer_to_goal":
+        if not isinstance(node.value, dict):
+            return RewardTerm(name, _scale(node), progress_toward_goal)
+        node.reject_unknown({"scale", "mode", "min_progress_m"})
+        mode = node.get("mode", "progress").string(("progress", "binary"))
+        scale = _scale(node.get("scale"))
+        if mode == "progress":
+            return RewardTerm(name, scale, progress_toward_goal)
+        min_progress = node.get("min_progress_m", 0.1).number(non_negative=True)
+        return RewardTerm(name, scale, closer_binary(min_progress))
+    if isinstance(node.value, dict):
+        node.reject_unknown({"scale"})
+        node = node.get("scale")
+    return RewardTerm(name, _scale(node), _SIMPLE_TERMS[name])
+
+
+def parse_rewards(node: Node) -> list[RewardTerm]:
+    """Parse the `reward:` mapping into scaled terms (in file order)."""
+    terms = []
+    for name, child in node.items():
+        if name not in TERM_NAMES:
+            raise ConfigError(f"{node.source}: {child.path}: unknown reward term "
+                              f"(expected one of {', '.join(TERM_NAMES)})")
+        terms.append(_parse_term(name, child))
+    if not terms:
+        raise node.error("at least one reward term")
+    return terms

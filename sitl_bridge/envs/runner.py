@@ -1,0 +1,208 @@
+"""Episode logic shared by the single- and multi-drone envs: actions in, per-drone results out.
+
+One `EpisodeRunner` drives one backend through episodes of one scenario: it turns action codes
+into velocity setpoints, flies them for the action's duration (plus the optional zero-velocity
+phase), then builds each drone's view, observation, reward terms and episode end.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sitl_bridge.client.actions import Action
+from sitl_bridge.envs.actions import action_velocity
+from sitl_bridge.envs.backends.base import Backend, Snapshot
+from sitl_bridge.envs.scenario import Scenario
+from sitl_bridge.envs.view import DroneView
+from sitl_bridge.frames import quat_to_euler
+from sitl_bridge.world import GoalPlacement
+
+OUTCOMES = ("goal", "crash", "out", "timeout")
+"""`info["outcome"]` values when a drone's episode ends (None while it runs)."""
+
+
+@dataclass
+class DroneResult:
+    """One drone's outcome of one env step (or of reset)."""
+
+    observation: np.ndarray
+    reward: float
+    terminated: bool
+    truncated: bool
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def priorities_by_position(starts_enu_m: list[np.ndarray]) -> np.ndarray:
+    """Priority in [0, 1] per drone: ranked by start (north, then east); lowest = 0.
+
+    The thesis's rule 5: "the one with the lower GPS coordinates hovers" - an explicit,
+    position-based priority instead of the drone id that biased its TW agent.
+    """
+    n = len(starts_enu_m)
+    if n == 1:
+        return np.ones(1)
+    order = sorted(range(n), key=lambda i: (float(starts_enu_m[i][1]), float(starts_enu_m[i][0]), i))
+    ranks = np.empty(n)
+    for rank, i in enumerate(order):
+        ranks[i] = rank / (n - 1)
+    return ranks
+
+
+def _inside(goal: GoalPlacement, position: np.ndarray, margin_m: float) -> bool:
+    center = np.asarray(goal.center_m)
+    half = np.asarray(goal.size_m) / 2.0 + margin_m
+    return bool(np.all(np.abs(position - center) <= half))
+
+
+class EpisodeRunner:
+    """Runs episodes of `scenario` on `backend` for all its drones at once."""
+
+    def __init__(self, scenario: Scenario, backend: Backend) -> None:
+        self.scenario = scenario
+        self.backend = backend
+        self.num_drones = scenario.num_drones
+        self.step_count = 0
+        self.done = [False] * self.num_drones
+        self.outcomes: list[str | None] = [None] * self.num_drones
+        self._snapshot: Snapshot | None = None
+        self._starts: list[np.ndarray] = []
+        self._goals: list[np.ndarray] = []
+        self._priorities = np.ones(self.num_drones)
+        self._last: list[DroneResult] = []
+
+    # -- episode ------------------------------------------------------------------------
+    def reset(self, seed: int | None = None) -> list[DroneResult]:
+        """Start a new episode (in place); every drone hovers at its spawn point."""
+        snapshot = self.backend.reset(seed)
+        self._snapshot = snapshot
+        self.step_count = 0
+        self.done = [False] * self.num_drones
+        self.outcomes = [None] * self.num_drones
+        self._starts = [np.array(s.position_enu_m, dtype=float) for s in snapshot.states]
+        self._goals = [np.array(g.center_m, dtype=float) for g in snapshot.goals]
+        self._priorities = priorities_by_position(self._starts)
+        results = []
+        for i in range(self.num_drones):
+            view = self._view(i, snapshot, self._starts[i], crashed=False)
+            results.append(DroneResult(self._observe(view), 0.0, False, False,
+                                       self._info(view, None, {}, None)))
+        self._last = results
+        return results
+
+    def step(self, actions: Mapping[int, int]) -> list[DroneResult]:
+        """Fly one action per active drone (missing or finished drones hover) and score it."""
+        if self._snapshot is None:
+            raise RuntimeError("call reset() before step()")
+        before = self._snapshot
+        config = self.scenario.task.action
+        velocities = []
+        for i in range(self.num_drones):
+            code = int(actions.get(i, Action.HOVER)) if not self.done[i] else int(Action.HOVER)
+            velocities.append(action_velocity(
+                code, config=config, drone=i,
+                position_enu_m=np.asarray(before.states[i].position_enu_m, dtype=float),
+                start_enu_m=self._starts[i], goal_enu_m=self._goals[i]))
+        snapshot = self.backend.fly(velocities, config.duration_s)
+        collided = list(snapshot.collided)
+        if config.zero_velocity_s > 0.0:
+            snapshot = self.backend.fly([np.zeros(3)] * self.num_drones, config.zero_velocity_s)
+            collided = [a or b for a, b in zip(collided, snapshot.collided, strict=True)]
+        self._snapshot = snapshot
+        self.step_count += 1
+
+        results = []
+        for i in range(self.num_drones):
+            if self.done[i]:
+                view = self._view(i, snapshot, before.states[i].position_enu_m, crashed=False)
+                results.append(DroneResult(self._observe(view), 0.0, True, False,
+                                           self._info(view, self.outcomes[i], {}, None)))
+                continue
+            results.append(self._score(i, snapshot, before, collided[i], actions.get(i)))
+        self._last = results
+        return results
+
+    @property
+    def last_results(self) -> list[DroneResult]:
+        """Every drone's result of the last reset or step."""
+        if not self._last:
+            raise RuntimeError("call reset() first")
+        return self._last
+
+    # -- pieces -------------------------------------------------------------------------
+    def _score(self, i: int, snapshot: Snapshot, before: Snapshot, collided: bool,
+               action: int | None) -> DroneResult:
+        end = self.scenario.task.end
+        crashed = collided or (end.crash_on_lidar and bool(snapshot.scans[i].crash))
+        view = self._view(i, snapshot, np.asarray(before.states[i].position_enu_m, dtype=float),
+                          crashed=crashed)
+        outcome: str | None = None
+        if view.crashed:
+            outcome = "crash"
+        elif view.reached_goal:
+            outcome = "goal"
+        elif view.out_of_workspace:
+            outcome = "out"
+        terms = {t.name: t(view) for t in self.scenario.task.rewards}
+        terminated = outcome is not None
+        truncated = not terminated and self.step_count >= self.scenario.task.max_steps
+        if truncated:
+            outcome = "timeout"
+        if terminated or truncated:
+            self.done[i] = True
+            self.outcomes[i] = outcome
+        return DroneResult(self._observe(view), float(sum(terms.values())), terminated, truncated,
+                           self._info(view, outcome, terms, action))
+
+    def _view(self, i: int, snapshot: Snapshot, previous_position: np.ndarray, *,
+              crashed: bool) -> DroneView:
+        end = self.scenario.task.end
+        state = snapshot.states[i]
+        scan = snapshot.scans[i]
+        position = np.asarray(state.position_enu_m, dtype=float)
+        others = [j for j in range(self.num_drones) if j != i]
+        workspace = self.scenario.world.workspace
+        return DroneView(
+            index=i,
+            position_enu_m=position,
+            previous_position_enu_m=np.asarray(previous_position, dtype=float),
+            euler_enu_rad=quat_to_euler(state.quaternion_enu_flu),
+            velocity_enu_m_s=np.asarray(state.velocity_enu_m_s, dtype=float),
+            start_enu_m=self._starts[i],
+            goal_enu_m=self._goals[i],
+            lidar={"horizontal": scan.horizontal_m, "up": scan.up_m, "down": scan.down_m},
+            priority=float(self._priorities[i]),
+            other_priorities=self._priorities[others],
+            others_position_enu_m=np.array([snapshot.states[j].position_enu_m for j in others],
+                                           dtype=float).reshape(-1, 3),
+            others_velocity_enu_m_s=np.array([snapshot.states[j].velocity_enu_m_s for j in others],
+                                             dtype=float).reshape(-1, 3),
+            crashed=crashed,
+            near_obstacle=bool(scan.near),
+            reached_goal=_inside(snapshot.goals[i], position, end.goal_margin_m),
+            out_of_workspace=end.out_of_workspace and not workspace.contains(position),
+            step=self.step_count,
+        )
+
+    def _observe(self, view: DroneView) -> np.ndarray:
+        parts = [feature(view) for feature in self.scenario.task.observation]
+        return np.concatenate(parts).astype(np.float32)
+
+    def _info(self, view: DroneView, outcome: str | None, terms: dict[str, float],
+              action: int | None) -> dict[str, Any]:
+        assert self._snapshot is not None
+        return {
+            "step": self.step_count,
+            "sim_time_s": self._snapshot.time_us / 1e6,
+            "action": action,
+            "outcome": outcome,
+            "reward_terms": terms,
+            "position_enu_m": view.position_enu_m.copy(),
+            "goal_enu_m": view.goal_enu_m.copy(),
+            "distance_to_goal_m": view.distance_to_goal_m,
+            "crashed": view.crashed,
+            "near_obstacle": view.near_obstacle,
+        }

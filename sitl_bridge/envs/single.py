@@ -1,0 +1,148 @@
+"""`SitlEnv`: the single-drone Gymnasium environment over any scenario file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from sitl_bridge.client.actions import NUM_ACTIONS
+from sitl_bridge.envs.backends import make_backend
+from sitl_bridge.envs.backends.base import Backend
+from sitl_bridge.envs.manual import describe
+from sitl_bridge.envs.runner import EpisodeRunner
+from sitl_bridge.envs.scenario import Scenario, load_scenario
+
+
+def observation_space(scenario: Scenario) -> spaces.Box:
+    """The Box of one drone's observation: the features' bounds, float32."""
+    low = np.concatenate([f.low for f in scenario.task.observation]).astype(np.float32)
+    high = np.concatenate([f.high for f in scenario.task.observation]).astype(np.float32)
+    return spaces.Box(low=low, high=high, dtype=np.float32)
+
+
+class SitlEnv(gym.Env[np.ndarray, np.int64]):
+    """A drone learns to reach a goal region without colliding, in a scenario of the thesis.
+
+    ## Description
+    One quadrotor (PX4's Iris) flies in the world of a scenario file (`worlds/*.yaml`): empty
+    space, a static or randomised obstacle, a wall with a window, a street with pedestrians and
+    birds. Each step the agent picks one of eight velocity commands; the autopilot (the built-in
+    PX4-compatible stub, or real PX4) flies it for a fixed span of simulated time while the
+    simulation runs in lockstep, then the simulation is held while the agent decides. The task
+    (observation, rewards, episode end, action settings) is the file's `task:` section, so a new
+    scenario needs no code. In a world with several drones this env controls drone `drone`; the
+    others hover (use `SitlParallelEnv` to control all of them).
+
+    ## Action Space
+    `Discrete(8)`, the thesis's table, each a velocity of `task.action.speed_m_s` (1 m/s) held
+    for `task.action.duration_s` (1 s) of simulated time, optionally followed by
+    `task.action.zero_velocity_s` of hover:
+
+    | code | `frame: world` (default) | `frame: goal` |
+    |---|---|---|
+    | 0 | east | right of the start-goal direction |
+    | 1 | west | left |
+    | 2 | south | back |
+    | 3 | north | forward (toward the goal, horizontally) |
+    | 4 | down | down |
+    | 5 | up | up |
+    | 6 | toward the goal (straight line, slowed to stop at it) | same |
+    | 7 | hover (zero velocity) | same |
+
+    Drones listed in `task.action.swap_drones` have 0/1 and 2/3 swapped (the thesis's fix for a
+    drone facing the other way in world frame).
+
+    ## Observation Space
+    `Box(float32)`: the concatenation of the features listed in `task.observation`, in order,
+    in the world ENU frame (x east, y north, z up; m, m/s, rad). Bounds per feature (values are
+    clipped to them, never NaN or inf): position and goal in the workspace box; orientation in
+    [-pi, pi]; velocities +-5 m/s; lidar in [0, range] (5 m; max range when nothing is hit);
+    priorities and flags in [0, 1]; dummy padding always 0 (declared [-1, 1]). The full table
+    of features is in `sitl_bridge.envs.features`; `env.describe()` prints the one of the
+    loaded scenario.
+
+    ## Rewards
+    The sum of the terms in `task.reward`, each `scale * term`, logged by name in
+    `info["reward_terms"]`: `closer_to_goal` (metres gained toward the goal), `goal_reached`,
+    `per_step`, `near_obstacle` (lidar near flag), `crash`, `out_of_workspace`. The thesis's
+    ratios: closer +10..+20, goal +500..+1000, step -5..-10, near -10..-50, crash -100..-500.
+
+    ## Starting State
+    The drone hovers at its spawn point (randomised per the world file: spawn, goal, obstacle
+    placement and shape), armed, in offboard mode, with zero velocity.
+
+    ## Episode End
+    Terminated: the drone is inside its goal region (`outcome` "goal"), it collided or the lidar
+    crash flag is set (`"crash"`), or it left the workspace (`"out"`). Truncated: after
+    `task.max_steps` steps (`"timeout"`).
+
+    ## Info
+    `step`, `sim_time_s`, `action`, `outcome` (None or goal/crash/out/timeout), `reward_terms`
+    (name -> scaled value), `position_enu_m`, `goal_enu_m`, `distance_to_goal_m`, `crashed`,
+    `near_obstacle`.
+
+    ## Arguments
+    ```python
+    sitl_bridge.envs.make_env("worlds/random_goal.yaml", autopilot="direct", speed_factor=0.0,
+                              seed=None, drone=0, instance_base=0, px4_bin=None)
+    gymnasium.make("sitl_bridge/RandomGoal-v0", autopilot="stub")
+    ```
+    `autopilot`: `direct` (stub controller + physics in-process, no sockets: the fast path for
+    training), `stub` (full protocol path: HIL link, stub autopilot, MAVLink, MAVSDK) or `px4`
+    (real PX4 SITL from `px4_bin` / `PX4_BIN`). `speed_factor`: simulated/wall time pacing for
+    `stub`/`px4` (0 = as fast as possible). `seed`: seeds the first `reset()` without a seed.
+    `instance_base`: first vehicle instance (ports 4560+i, 14540+i, ...).
+
+    ## Version History
+    * v0: initial version (thesis scenarios E, ER, O, OR, W, street; backends direct/stub/px4).
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, scenario: str | Path | Scenario, *, autopilot: str = "direct",
+                 speed_factor: float = 0.0, seed: int | None = None, drone: int = 0,
+                 instance_base: int = 0, px4_bin: str | None = None, gui: bool = False,
+                 backend: Backend | None = None) -> None:
+        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        if not 0 <= drone < self.scenario.num_drones:
+            raise ValueError(f"drone must be in 0..{self.scenario.num_drones - 1}, got {drone}")
+        self.drone = drone
+        self.backend = backend or make_backend(
+            autopilot, self.scenario.world, start_altitude_m=self.scenario.task.start_altitude_m,
+            speed_factor=speed_factor, seed=0 if seed is None else seed,
+            instance_base=instance_base, px4_bin=px4_bin, gui=gui)
+        self.runner = EpisodeRunner(self.scenario, self.backend)
+        self.action_space = spaces.Discrete(NUM_ACTIONS)
+        self.observation_space = observation_space(self.scenario)
+        self._first_seed = seed
+        self._closed = False
+
+    def reset(self, *, seed: int | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is None and self._first_seed is not None:
+            seed, self._first_seed = self._first_seed, None
+        super().reset(seed=seed)
+        # Each episode's layout seed comes from the env's generator: seeded runs repeat exactly.
+        results = self.runner.reset(int(self.np_random.integers(2**31 - 1)))
+        mine = results[self.drone]
+        return mine.observation, mine.info
+
+    def step(self, action: int | np.integer) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if not self.action_space.contains(action):
+            raise ValueError(f"action must be an integer in 0..{NUM_ACTIONS - 1}, got {action!r}")
+        results = self.runner.step({self.drone: int(action)})
+        mine = results[self.drone]
+        return mine.observation, mine.reward, mine.terminated, mine.truncated, mine.info
+
+    def describe(self) -> str:
+        """This scenario's manual (Markdown): observation table with bounds, rewards, episode end."""
+        return describe(self.scenario)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self.backend.close()

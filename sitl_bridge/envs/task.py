@@ -1,0 +1,137 @@
+"""The `task:` section of a scenario file, parsed into typed, validated objects.
+
+A scenario is one YAML file under `worlds/`: the `world:` section (geometry, vehicles, goals,
+workspace; read by `sitl_bridge.world`) and the `task:` section read here (what the learner sees,
+how it is rewarded, when an episode ends, what an action means). Example::
+
+    task:
+      max_steps: 35                 # step limit -> truncated
+      start_altitude_m: 2.5         # each episode starts hovering this high above the spawn
+      action:
+        speed_m_s: 1.0              # every moving action flies this speed ...
+        duration_s: 1.0             # ... for this many simulated seconds
+        zero_velocity_s: 0.0        # optional hover phase after each action
+        frame: world                # world (thesis) | goal (relative to the start-goal line)
+        swap_drones: []             # drones whose 0/1 and 2/3 are swapped (the thesis's hack)
+      observation:                  # concatenated in this order
+        - position: {decimals: 0}
+        - orientation: {decimals: 0}
+        - lidar: [horizontal]
+      reward:                       # name: scale, or name: {scale: .., other options}
+        closer_to_goal: 10
+        goal_reached: 500
+        per_step: -5
+        crash: -100
+      end:
+        goal_margin_m: 0.0          # reached inside the world's goal box grown by this
+        crash_on_lidar: true        # the lidar's crash flag ends the episode as a crash
+
+Unknown keys are errors (typos never pass silently); every error is one line naming the file and
+the key path (`sitl_bridge.errors.ConfigError`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from sitl_bridge.envs.features import Feature, parse_observation
+from sitl_bridge.envs.rewards import RewardTerm, parse_rewards
+from sitl_bridge.envs.view import ScenarioLimits
+from sitl_bridge.errors import ConfigError, Node
+
+ACTION_FRAMES = ("world", "goal")
+
+
+@dataclass(frozen=True)
+class ActionConfig:
+    """What one discrete action means in the simulator."""
+
+    speed_m_s: float = 1.0
+    """Speed of every moving action (thesis: 1 m/s)."""
+    duration_s: float = 1.0
+    """Simulated seconds each action's velocity is held (thesis: 1 s)."""
+    zero_velocity_s: float = 0.0
+    """Simulated seconds of zero velocity after each action (the thesis's smoother variant)."""
+    frame: str = "world"
+    """`world`: 0 east, 1 west, 2 south, 3 north. `goal`: 0 right, 1 left, 2 back, 3 forward of
+    the horizontal start-goal direction (symmetric head-on scenarios without the swap)."""
+    swap_drones: tuple[int, ...] = ()
+    """Drone indices whose actions 0/1 and 2/3 are swapped (the thesis's fix for a drone
+    facing the other way in a world-frame head-on scenario)."""
+
+    @property
+    def step_s(self) -> float:
+        """Simulated seconds one env step takes."""
+        return self.duration_s + self.zero_velocity_s
+
+
+@dataclass(frozen=True)
+class EndConfig:
+    """When an episode ends (besides the step limit)."""
+
+    goal_margin_m: float = 0.0
+    """The goal is reached inside the world's goal region (a box) grown by this margin."""
+    crash_on_lidar: bool = True
+    """The lidar's crash flag (something closer than its crash distance) counts as a crash."""
+    out_of_workspace: bool = True
+    """Leaving the world's workspace bounds ends the episode."""
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """The parsed `task:` section of one scenario file."""
+
+    max_steps: int
+    start_altitude_m: float
+    """Each episode starts with the drone hovering this high above its spawn point (the thesis
+    took off before every episode)."""
+    action: ActionConfig
+    observation: tuple[Feature, ...]
+    rewards: tuple[RewardTerm, ...]
+    end: EndConfig
+    source: str = ""
+
+    @property
+    def observation_size(self) -> int:
+        """Length of one drone's observation vector."""
+        return sum(f.size for f in self.observation)
+
+
+def _parse_action(node: Node, num_drones: int) -> ActionConfig:
+    node.reject_unknown({"speed_m_s", "duration_s", "zero_velocity_s", "frame", "swap_drones"})
+    swap: list[int] = []
+    for item in node.get("swap_drones", []).list():
+        swap.append(item.integer(minimum=0, maximum=num_drones - 1))
+    return ActionConfig(
+        speed_m_s=node.get("speed_m_s", 1.0).number(positive=True, maximum=20.0),
+        duration_s=node.get("duration_s", 1.0).number(positive=True, maximum=60.0),
+        zero_velocity_s=node.get("zero_velocity_s", 0.0).number(non_negative=True, maximum=60.0),
+        frame=node.get("frame", "world").string(ACTION_FRAMES),
+        swap_drones=tuple(swap),
+    )
+
+
+def _parse_end(node: Node) -> EndConfig:
+    node.reject_unknown({"goal_margin_m", "crash_on_lidar", "out_of_workspace"})
+    return EndConfig(
+        goal_margin_m=node.get("goal_margin_m", 0.0).number(non_negative=True),
+        crash_on_lidar=node.get("crash_on_lidar", True).boolean(),
+        out_of_workspace=node.get("out_of_workspace", True).boolean(),
+    )
+
+
+def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
+    """Parse a `task:` node (its path should be `task`) for a world with the given limits."""
+    if node.value is None:
+        raise ConfigError(f"{node.source}: task: required section is missing")
+    node.reject_unknown({"max_steps", "start_altitude_m", "action", "observation", "reward", "end"})
+    observation = parse_observation(node.get("observation"), limits)
+    return TaskConfig(
+        max_steps=node.get("max_steps").integer(minimum=1, maximum=100_000),
+        start_altitude_m=node.get("start_altitude_m", 2.5).number(minimum=0.3, maximum=100.0),
+        action=_parse_action(node.get("action", {}), limits.num_drones),
+        observation=tuple(observation),
+        rewards=tuple(parse_rewards(node.get("reward"))),
+        end=_parse_end(node.get("end", {})),
+        source=node.source,
+    )

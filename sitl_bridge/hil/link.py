@@ -1,0 +1,511 @@
+"""`HilLink`: the simulator side of PX4's simulator MAVLink protocol for one vehicle.
+
+The simulator is the TCP server on host:4560+instance and the autopilot (PX4's
+`simulator_mavlink`, the stub's HIL client, anything speaking the protocol) connects. Per
+physics step the link sends exactly one HIL_SENSOR with id 0 (IMU every step; mag and baro
+only when they updated, with their `fields_updated` bits), then HIL_GPS when a GPS sample is
+due and HIL_STATE_QUATERNION ground truth at the requested interval, all in one TCP write.
+It receives HIL_ACTUATOR_CONTROLS (controls[0..3] = motors 1..4, armed = mode & 128),
+HEARTBEAT and COMMAND_LONG SET_MESSAGE_INTERVAL. Garbage bytes, split frames and bad
+checksums are counted in `stats` and logged at debug level; they never break the link.
+
+Simulated time goes on the wire as `time_usec = frame.time_us + offset`: the offset (one
+step at first) keeps wire time strictly increasing when the simulation is reset in place,
+because an autopilot's clock (PX4's lockstep clock) can never go back.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import select
+import socket
+import struct
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from sitl_bridge import mavlink
+from sitl_bridge.hil.errors import HilError, LinkClosed, LockstepTimeout
+from sitl_bridge.physics.simulation import MotorCommand
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BASE_PORT = 4560
+
+# HIL_SENSOR fields_updated groups: PX4 reads a group only when all its bits are set
+# (SimulatorMavlink.hpp SensorSource).
+FIELDS_ACCEL = 0x0007
+FIELDS_GYRO = 0x0038
+FIELDS_MAG = 0x01C0
+FIELDS_BARO = 0x1A00  # abs_pressure, pressure_alt, temperature
+FIELDS_IMU = FIELDS_ACCEL | FIELDS_GYRO
+
+# PX4 stores simulated accel/gyro id 0 as int16 counts (16 g, 2000 deg/s full scale):
+# anything beyond overflows, so clamp just inside.
+ACCEL_LIMIT_M_S2 = 156.0
+GYRO_LIMIT_RAD_S = 34.9
+MAG_LIMIT_GAUSS = 16.0
+PRESSURE_RANGE_HPA = (1.0, 1200.0)
+TEMPERATURE_RANGE_C = (-60.0, 85.0)
+
+# SET_MESSAGE_INTERVAL param2 meanings (MAVLink common.xml).
+INTERVAL_DISABLED = -1
+INTERVAL_DEFAULT = 0
+
+_INT16 = 32767
+_UINT16 = 65535
+
+_DISARMED = MotorCommand.disarmed()
+
+_SENSOR_CLASS = mavlink.dialect.MAVLink_hil_sensor_message
+_GPS_CLASS = mavlink.dialect.MAVLink_hil_gps_message
+_STATE_CLASS = mavlink.dialect.MAVLink_hil_state_quaternion_message
+_ACTUATOR_STRUCT = struct.Struct("<QQ16fB")  # time_usec, flags, controls[16], mode
+_COMMAND_LONG_STRUCT = struct.Struct("<7fHBBB")  # param1..7, command, target sys/comp, confirmation
+
+
+def _clamp(value: float, low: float, high: float) -> float:
+    if value != value:  # NaN: PX4 would propagate it into its estimator
+        return 0.0
+    return low if value < low else high if value > high else value
+
+
+def _clamp_int(value: float, low: int, high: int) -> int:
+    if value != value:
+        return 0
+    number = int(round(value))
+    return low if number < low else high if number > high else number
+
+
+def _i16(value: float) -> int:
+    """Round into int16 (NaN -> 0)."""
+    if value != value:
+        return 0
+    return -_INT16 if value < -_INT16 else _INT16 if value > _INT16 else int(round(value))
+
+
+def _motor_value(value: float) -> float:
+    return 0.0 if value != value or value < 0.0 else 1.0 if value > 1.0 else value
+
+
+@dataclass
+class LinkStats:
+    """Counters of one link (since construction, across reconnections)."""
+
+    connections: int = 0
+    sensor_msgs: int = 0
+    gps_msgs: int = 0
+    state_msgs: int = 0
+    actuator_msgs: int = 0
+    stale_actuator_msgs: int = 0  # answers to an earlier step than the last one sent
+    heartbeats: int = 0
+    commands: int = 0
+    other_msgs: int = 0
+    garbage_bytes: int = 0
+    bad_crc: int = 0
+    timeouts: int = 0
+    bytes_sent: int = 0
+    bytes_received: int = 0
+
+
+@dataclass(frozen=True)
+class AutopilotHeartbeat:
+    """The latest HEARTBEAT the autopilot sent on the simulator link."""
+
+    system_id: int
+    component_id: int
+    autopilot: int
+    base_mode: int
+
+    @property
+    def armed(self) -> bool:
+        return bool(self.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+class HilLink:
+    """Simulator-side TCP server of PX4's simulator protocol for vehicle `instance`.
+
+    The server socket is bound in the constructor (so a port conflict fails at once); the
+    autopilot connection is taken with `accept(timeout_s)`. A later `accept` after
+    `disconnect()` takes a new autopilot (a restarted PX4).
+
+    Args:
+        instance: vehicle instance; the port is `base_port + instance`.
+        host: address to listen on (127.0.0.1 by default, never all interfaces unless asked).
+        base_port: 4560 like PX4's `px4-rc.simulator`.
+        step_us: the physics step, used to keep wire time monotonic across resets.
+        state_interval_us: HIL_STATE_QUATERNION interval before the autopilot asks for one
+            (0: every step like Gazebo, -1: off). PX4 asks for 5000 us on connect.
+        system_id, component_id: ids of the simulator's messages (Gazebo's 1/200).
+    """
+
+    def __init__(
+        self,
+        instance: int,
+        host: str = "127.0.0.1",
+        base_port: int = DEFAULT_BASE_PORT,
+        *,
+        step_us: int = 4000,
+        state_interval_us: int = INTERVAL_DEFAULT,
+        system_id: int = 1,
+        component_id: int = 200,
+    ) -> None:
+        self.instance = instance
+        self.host = host
+        self.port = base_port + instance
+        self.step_us = step_us
+        self.default_state_interval_us = state_interval_us
+        self.stats = LinkStats()
+        self.heartbeat: AutopilotHeartbeat | None = None
+        self._encoder = mavlink.FrameEncoder(system_id, component_id)
+        self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            self._server.bind((host, self.port))
+        except OSError as exc:
+            self._server.close()
+            raise HilError(
+                f"vehicle {instance}: cannot listen on {host}:{self.port} ({exc.strerror}); "
+                "is another simulator using this instance?"
+            ) from None
+        self._server.listen(1)
+        self._server.setblocking(False)
+        self._client: socket.socket | None = None
+        self._peer = ""
+        self._time_offset_us = step_us  # first wire time is one step, never 0
+        self._last_sent_wire_us = 0
+        self._reset_connection_state()
+
+    # -- connection ---------------------------------------------------------------------
+    def _reset_connection_state(self) -> None:
+        self._parser = mavlink.FrameParser()
+        self._parser_garbage = 0
+        self._parser_bad_crc = 0
+        self.command: MotorCommand = _DISARMED
+        self.actuators_flowing = False
+        self._last_reply_wire_us = -1
+        self.actuator_flags = 0
+        self.state_interval_us = self.default_state_interval_us
+        self._next_state_wire_us = 0
+        self.heartbeat = None
+
+    @property
+    def connected(self) -> bool:
+        """True while an autopilot is connected."""
+        return self._client is not None
+
+    @property
+    def peer(self) -> str:
+        """host:port of the connected autopilot ('' when none)."""
+        return self._peer
+
+    def fileno(self) -> int:
+        """The connected socket's descriptor (for select/poll); -1 when not connected."""
+        return self._client.fileno() if self._client is not None else -1
+
+    def accept(self, timeout_s: float) -> bool:
+        """Wait up to `timeout_s` for an autopilot to connect. True once connected (at once
+        if one already is). A new connection starts with no actuator answers yet."""
+        if self._client is not None:
+            return True
+        readable, _, _ = select.select([self._server], [], [], max(0.0, timeout_s))
+        if not readable:
+            return False
+        try:
+            client, address = self._server.accept()
+        except BlockingIOError:
+            return False
+        client.setblocking(False)
+        client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._client = client
+        self._peer = f"{address[0]}:{address[1]}"
+        self._reset_connection_state()
+        self.stats.connections += 1
+        log.info("vehicle %d: autopilot connected from %s", self.instance, self._peer)
+        return True
+
+    def disconnect(self) -> None:
+        """Drop the autopilot connection (keeps listening for the next one)."""
+        if self._client is not None:
+            with contextlib.suppress(OSError):
+                self._client.close()
+            log.info("vehicle %d: autopilot connection closed", self.instance)
+        self._client = None
+        self._peer = ""
+        self._reset_connection_state()
+
+    def close(self) -> None:
+        """Close the connection and the server socket (frees the port)."""
+        self.disconnect()
+        with contextlib.suppress(OSError):
+            self._server.close()
+
+    def __enter__(self) -> HilLink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- time -----------------------------------------------------------------------------
+    def wire_time_us(self, time_us: int) -> int:
+        """The `time_usec` that simulated time `time_us` has (or would have) on the wire."""
+        return time_us + self._time_offset_us
+
+    @property
+    def last_sent_time_usec(self) -> int:
+        """`time_usec` of the last HIL_SENSOR sent (0 before the first)."""
+        return self._last_sent_wire_us
+
+    # -- sending --------------------------------------------------------------------------
+    def send_sensor_frame(self, frame: Any) -> None:
+        """Send one step's messages: exactly one HIL_SENSOR (id 0), then HIL_GPS when the
+        frame has a GPS sample, then HIL_STATE_QUATERNION when due. One TCP write."""
+        client = self._client
+        if client is None:
+            raise LinkClosed(f"vehicle {self.instance}: no autopilot connected", instance=self.instance)
+        wire_us = frame.time_us + self._time_offset_us
+        if wire_us <= self._last_sent_wire_us:
+            # Simulation reset in place: continue the autopilot's clock instead.
+            self._time_offset_us = self._last_sent_wire_us + self.step_us - frame.time_us
+            wire_us = self._last_sent_wire_us + self.step_us
+        data = self._encode_sensor(frame, wire_us)
+        if frame.gps is not None:
+            data += self._encode_gps(frame.gps, wire_us)
+            self.stats.gps_msgs += 1
+        if self.state_interval_us >= 0 and wire_us >= self._next_state_wire_us:
+            data += self._encode_state(frame.truth, wire_us)
+            self.stats.state_msgs += 1
+            interval = self.state_interval_us
+            # Schedule on a fixed grid so e.g. 5000 us over 4000 us steps averages 200 Hz.
+            if interval <= 0 or self._next_state_wire_us == 0:
+                self._next_state_wire_us = wire_us + interval
+            else:
+                self._next_state_wire_us += interval
+                if self._next_state_wire_us <= wire_us:
+                    self._next_state_wire_us = wire_us + interval
+        self._send(data)
+        self._last_sent_wire_us = wire_us
+        self.stats.sensor_msgs += 1
+
+    def _encode_sensor(self, frame: Any, wire_us: int) -> bytes:
+        ax, ay, az = frame.accel_frd_m_s2.tolist()
+        gx, gy, gz = frame.gyro_frd_rad_s.tolist()
+        a, g = ACCEL_LIMIT_M_S2, GYRO_LIMIT_RAD_S
+        fields = FIELDS_IMU
+        mx = my = mz = 0.0
+        pressure_hpa = pressure_alt_m = temperature_c = 0.0
+        if frame.mag_frd_gauss is not None:
+            mx, my, mz = frame.mag_frd_gauss.tolist()
+            m = MAG_LIMIT_GAUSS
+            mx, my, mz = _clamp(mx, -m, m), _clamp(my, -m, m), _clamp(mz, -m, m)
+            fields |= FIELDS_MAG
+        baro = frame.baro
+        if baro is not None:
+            pressure_hpa = _clamp(float(baro.pressure_hpa), *PRESSURE_RANGE_HPA)
+            temperature_c = _clamp(float(baro.temperature_c), *TEMPERATURE_RANGE_C)
+            pressure_alt_m = _clamp(float(baro.pressure_alt_m), -1000.0, 50000.0)
+            fields |= FIELDS_BARO
+        return self._encoder.pack(
+            _SENSOR_CLASS,
+            wire_us,
+            _clamp(ax, -a, a), _clamp(ay, -a, a), _clamp(az, -a, a),
+            _clamp(gx, -g, g), _clamp(gy, -g, g), _clamp(gz, -g, g),
+            mx, my, mz,
+            pressure_hpa, 0.0, pressure_alt_m, temperature_c,
+            fields,
+            0,  # id 0: the primary sensor, which drives PX4's clock
+        )
+
+    def _encode_gps(self, gps: Any, wire_us: int) -> bytes:
+        return self._encoder.pack(
+            _GPS_CLASS,
+            wire_us,
+            _clamp_int(gps.lat_e7, -900_000_000, 900_000_000),
+            _clamp_int(gps.lon_e7, -1_800_000_000, 1_800_000_000),
+            _clamp_int(gps.alt_mm, -(2**31), 2**31 - 1),
+            _clamp_int(gps.eph_cm, 0, _UINT16),
+            _clamp_int(gps.epv_cm, 0, _UINT16),
+            _clamp_int(gps.vel_cm_s, 0, _UINT16),
+            _clamp_int(gps.vn_cm_s, -_INT16, _INT16),
+            _clamp_int(gps.ve_cm_s, -_INT16, _INT16),
+            _clamp_int(gps.vd_cm_s, -_INT16, _INT16),
+            _clamp_int(gps.cog_cdeg, 0, _UINT16),
+            _clamp_int(gps.fix_type, 0, 255),
+            _clamp_int(gps.satellites, 0, 255),
+            0,  # id: GPS instance 0
+            0,  # yaw: 0 = not available
+        )
+
+    def _encode_state(self, truth: Any, wire_us: int) -> bytes:
+        qw, qx, qy, qz = truth.quaternion_ned_frd.tolist()
+        p, q, r = truth.angular_velocity_frd_rad_s.tolist()
+        vn, ve, vd = truth.velocity_ned_m_s.tolist()
+        an, ae, ad = truth.accel_ned_m_s2.tolist()
+        speed_cm_s = min(int(math.sqrt(vn * vn + ve * ve + vd * vd) * 100.0), _UINT16)
+        return self._encoder.pack(
+            _STATE_CLASS,
+            wire_us,
+            qw, qx, qy, qz,
+            p, q, r,
+            # geodetic values come from the sensor suite as valid integers already
+            int(truth.lat_e7), int(truth.lon_e7), int(truth.alt_mm),
+            _i16(vn * 100.0), _i16(ve * 100.0), _i16(vd * 100.0),
+            speed_cm_s, speed_cm_s,
+            # Gazebo sends NED m/s^2 x 1000 and PX4 divides by 1000 (fact sheet A2).
+            _i16(an * 1000.0), _i16(ae * 1000.0), _i16(ad * 1000.0),
+        )
+
+    def _send(self, data: bytes, timeout_s: float = 5.0) -> None:
+        client = self._client
+        assert client is not None
+        view = memoryview(data)
+        try:
+            sent = client.send(view)
+        except BlockingIOError:
+            sent = 0
+        except OSError as exc:
+            self._lost(f"send failed ({exc})")
+        while sent < len(view):
+            # Only when the autopilot stops reading: wait, bounded, for buffer space.
+            _, writable, _ = select.select([], [client], [], timeout_s)
+            if not writable:
+                raise LinkClosed(
+                    f"vehicle {self.instance}: autopilot stopped reading for {timeout_s} s",
+                    instance=self.instance,
+                )
+            try:
+                sent += client.send(view[sent:])
+            except BlockingIOError:
+                continue
+            except OSError as exc:
+                self._lost(f"send failed ({exc})")
+        self.stats.bytes_sent += len(data)
+
+    def _lost(self, why: str) -> None:
+        instance = self.instance
+        self.disconnect()
+        raise LinkClosed(f"vehicle {instance}: autopilot link lost: {why}", instance=instance)
+
+    # -- receiving ------------------------------------------------------------------------
+    def poll(self) -> int:
+        """Read and handle whatever the autopilot sent, without blocking. Returns the number
+        of HIL_ACTUATOR_CONTROLS handled. Raises LinkClosed when the autopilot hung up."""
+        client = self._client
+        if client is None:
+            return 0
+        handled = 0
+        while True:
+            try:
+                data = client.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return handled
+            except OSError as exc:
+                self._lost(f"receive failed ({exc})")
+            if not data:
+                self._lost("connection closed by the autopilot")
+            self.stats.bytes_received += len(data)
+            handled += self._handle_bytes(data)
+            if len(data) < 65536:
+                return handled
+
+    def _handle_bytes(self, data: bytes) -> int:
+        parser = self._parser
+        handled = 0
+        for frame in parser.feed(data):
+            if frame.msgid == mavlink.HIL_ACTUATOR_CONTROLS:
+                self._handle_actuators(frame.payload)
+                handled += 1
+            elif frame.msgid == mavlink.HEARTBEAT:
+                self._handle_heartbeat(frame)
+            elif frame.msgid == mavlink.COMMAND_LONG:
+                self._handle_command(frame)
+            else:
+                self.stats.other_msgs += 1
+                log.debug("vehicle %d: ignoring message id %d", self.instance, frame.msgid)
+        stats = parser.stats
+        if stats.garbage_bytes != self._parser_garbage or stats.bad_crc != self._parser_bad_crc:
+            self.stats.garbage_bytes += stats.garbage_bytes - self._parser_garbage
+            self.stats.bad_crc += stats.bad_crc - self._parser_bad_crc
+            self._parser_garbage, self._parser_bad_crc = stats.garbage_bytes, stats.bad_crc
+            log.debug(
+                "vehicle %d: skipped bytes on the simulator link (garbage %d, bad CRC %d so far)",
+                self.instance, self.stats.garbage_bytes, self.stats.bad_crc,
+            )
+        return handled
+
+    def _handle_actuators(self, payload: bytes) -> None:
+        values = _ACTUATOR_STRUCT.unpack(payload)
+        time_usec, flags, mode = values[0], values[1], values[18]
+        self.stats.actuator_msgs += 1
+        self.actuators_flowing = True
+        self.actuator_flags = flags
+        if time_usec < self._last_sent_wire_us:
+            self.stats.stale_actuator_msgs += 1
+            if time_usec < self._last_reply_wire_us:
+                return  # older than what we already applied: out of order, drop
+        self._last_reply_wire_us = max(self._last_reply_wire_us, time_usec)
+        if mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
+            self.command = MotorCommand(
+                controls=(
+                    _motor_value(values[2]), _motor_value(values[3]),
+                    _motor_value(values[4]), _motor_value(values[5]),
+                ),
+                armed=True,
+            )
+        else:
+            self.command = _DISARMED
+
+    def _handle_heartbeat(self, frame: mavlink.Frame) -> None:
+        _custom_mode, _type, autopilot, base_mode, _status, _version = mavlink.unpack_payload(frame)
+        self.stats.heartbeats += 1
+        self.heartbeat = AutopilotHeartbeat(frame.system_id, frame.component_id, autopilot, base_mode)
+
+    def _handle_command(self, frame: mavlink.Frame) -> None:
+        p1, p2, _p3, _p4, _p5, _p6, _p7, command, _ts, _tc, _conf = _COMMAND_LONG_STRUCT.unpack(
+            frame.payload
+        )
+        self.stats.commands += 1
+        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and int(p1) == mavlink.HIL_STATE_QUATERNION:
+            interval = int(p2)
+            if interval == INTERVAL_DEFAULT:
+                interval = self.default_state_interval_us
+            self.state_interval_us = interval if interval > 0 else (
+                INTERVAL_DISABLED if interval < 0 else 0
+            )
+            self._next_state_wire_us = 0
+            log.debug("vehicle %d: HIL_STATE_QUATERNION interval %d us", self.instance, interval)
+        else:
+            log.debug("vehicle %d: ignoring command %d", self.instance, command)
+
+    # -- lockstep ---------------------------------------------------------------------------
+    def answered(self, time_us: int | None = None) -> bool:
+        """True when the autopilot answered the step at simulated `time_us` (default: the last
+        step sent), or when no actuator message has arrived yet on this connection (before
+        that, steps do not wait: PX4 is still booting)."""
+        if not self.actuators_flowing:
+            return True
+        wire = self._last_sent_wire_us if time_us is None else time_us + self._time_offset_us
+        return self._last_reply_wire_us >= wire
+
+    def receive_actuators(self, time_us: int, timeout_s: float) -> MotorCommand:
+        """The command answering the step at simulated `time_us`, waiting up to `timeout_s`
+        (wall) for it once actuators flow. Raises LockstepTimeout (and counts it)."""
+        self.poll()
+        if self.answered(time_us):
+            return self.command
+        end = time.monotonic() + timeout_s  # a timeout only: the link never paces
+        while True:
+            remaining = end - time.monotonic()
+            if remaining <= 0:
+                self.stats.timeouts += 1
+                raise LockstepTimeout(
+                    f"vehicle {self.instance}: no HIL_ACTUATOR_CONTROLS for time_usec "
+                    f"{self.wire_time_us(time_us)} within {timeout_s} s",
+                    instances=(self.instance,), time_us=time_us,
+                )
+            select.select([self._client], [], [], remaining)
+            self.poll()
+            if self.answered(time_us):
+                return self.command

@@ -1,0 +1,220 @@
+"""DQN hyperparameters: one dataclass, read from a scenario's `train:` section, overridable on the
+command line.
+
+Each field's docstring is its documentation and becomes its `--help` text (read from this file's
+source, CleanRL/tyro style), so the docs cannot drift from the code. Example `train:` section::
+
+    train:
+      episodes: 1500
+      gamma: 0.9
+      learning_rate: 0.00077
+      batch_size: 400
+      target_update_period: 100
+      layers: 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import inspect
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from sitl_bridge.errors import ConfigError, Node, load_yaml
+
+OPTIMIZERS = ("adam", "adamax", "sgd", "rmsprop")
+LOSSES = ("mse", "huber", "mae")
+TARGET_UPDATE_UNITS = ("steps", "episodes")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that decides how a DQN run learns (thesis Tables 4-8)."""
+
+    experiment: str = "dqn"
+    """Experiment name, the second part of the run directory name."""
+    episodes: int = 1000
+    """Training episodes (the run's budget)."""
+    gamma: float = 0.9
+    """Discount factor of future rewards."""
+    epsilon_max: float = 1.0
+    """Exploration rate at step 0: eps = eps_min + (eps_max - eps_min) * exp(-lambda * steps)."""
+    epsilon_min: float = 0.0
+    """Exploration rate the schedule decays to."""
+    epsilon_decay: float = 5e-5
+    """lambda of the exponential epsilon schedule, per environment step (thesis: 3e-5..6e-5)."""
+    transfer_epsilon_max: float = 0.6
+    """epsilon_max used instead when the run starts from another run's network (thesis: 0.45-0.8)."""
+    learning_rate: float = 1e-3
+    """Learning rate (at the start when learning_rate_end is set)."""
+    learning_rate_end: float = 0.0
+    """Learning rate reached at the last episode, geometric interpolation; 0 = constant rate."""
+    optimizer: str = "adam"
+    """Optimizer: adam, adamax, sgd or rmsprop."""
+    loss: str = "mse"
+    """Loss between Q(s, a) and its target: mse, huber or mae."""
+    batch_size: int = 64
+    """Transitions per gradient update, sampled uniformly from the replay."""
+    learning_starts: int = 0
+    """Transitions collected before the first update (at least batch_size)."""
+    train_every: int = 1
+    """One gradient update every this many environment steps."""
+    target_update_period: int = 100
+    """Copy the online network into the target network every this many steps (or episodes)."""
+    target_update_unit: str = "steps"
+    """Unit of target_update_period: steps (gradient updates) or episodes."""
+    double_dqn: bool = True
+    """Double DQN: the online network picks the next action, the target network values it."""
+    replay_capacity: int = 100_000
+    """Transitions kept in the experience replay (oldest dropped first; thesis: O needs >= 60k)."""
+    layers: int = 4
+    """Linear layers of the Q network, output layer included (the thesis's "number of layers")."""
+    hidden_units: int = 64
+    """Width of every hidden layer (PReLU activations)."""
+    max_grad_norm: float = 0.0
+    """Clip the gradient norm to this value; 0 = no clipping."""
+    eval_episodes: int = 20
+    """Greedy evaluation episodes after training and at every eval_every (0 = none)."""
+    eval_every: int = 0
+    """Also evaluate greedily every this many training episodes (0 = only at the end)."""
+    checkpoints_kept: int = 3
+    """Checkpoints kept on disk; older ones are deleted (the newest good one is used on resume)."""
+    replay_segment_rows: int = 50_000
+    """Transitions per replay shard file on disk."""
+    success_window: int = 100
+    """Episodes in the rolling success rate of the progress bar and plots."""
+    torch_threads: int = 1
+    """CPU threads torch may use (keep 1 when several runs share a machine)."""
+    device: str = "cpu"
+    """Torch device: cpu, cuda or auto (cuda when present)."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self, source: str = "train") -> None:
+        """Raise ConfigError on values that cannot work (one line, naming the field)."""
+        checks: list[tuple[str, bool, str]] = [
+            ("episodes", self.episodes >= 0, "an integer >= 0"),
+            ("gamma", 0.0 <= self.gamma <= 1.0, "a number in [0, 1]"),
+            ("epsilon_max", 0.0 <= self.epsilon_max <= 1.0, "a number in [0, 1]"),
+            ("epsilon_min", 0.0 <= self.epsilon_min <= self.epsilon_max, "a number in [0, epsilon_max]"),
+            ("epsilon_decay", self.epsilon_decay >= 0.0, "a non-negative number"),
+            ("transfer_epsilon_max", 0.0 <= self.transfer_epsilon_max <= 1.0, "a number in [0, 1]"),
+            ("learning_rate", self.learning_rate > 0.0, "a positive number"),
+            ("learning_rate_end", self.learning_rate_end >= 0.0, "a non-negative number"),
+            ("optimizer", self.optimizer in OPTIMIZERS, f"one of {', '.join(OPTIMIZERS)}"),
+            ("loss", self.loss in LOSSES, f"one of {', '.join(LOSSES)}"),
+            ("batch_size", self.batch_size >= 1, "an integer >= 1"),
+            ("learning_starts", self.learning_starts >= 0, "an integer >= 0"),
+            ("train_every", self.train_every >= 1, "an integer >= 1"),
+            ("target_update_period", self.target_update_period >= 1, "an integer >= 1"),
+            ("target_update_unit", self.target_update_unit in TARGET_UPDATE_UNITS, "steps or episodes"),
+            ("replay_capacity", self.replay_capacity >= self.batch_size, "an integer >= batch_size"),
+            ("layers", self.layers >= 1, "an integer >= 1"),
+            ("hidden_units", self.hidden_units >= 1, "an integer >= 1"),
+            ("max_grad_norm", self.max_grad_norm >= 0.0, "a non-negative number"),
+            ("eval_episodes", self.eval_episodes >= 0, "an integer >= 0"),
+            ("eval_every", self.eval_every >= 0, "an integer >= 0"),
+            ("checkpoints_kept", self.checkpoints_kept >= 2, "an integer >= 2 (one to fall back on)"),
+            ("replay_segment_rows", self.replay_segment_rows >= 1, "an integer >= 1"),
+            ("success_window", self.success_window >= 1, "an integer >= 1"),
+            ("torch_threads", self.torch_threads >= 1, "an integer >= 1"),
+            ("device", self.device in ("cpu", "cuda", "auto"), "cpu, cuda or auto"),
+        ]
+        for name, ok, expected in checks:
+            if not ok:
+                raise ConfigError(f"{source}: {name}: expected {expected}, got {getattr(self, name)!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (YAML/JSON friendly), in field order."""
+        return dataclasses.asdict(self)
+
+    def replace(self, **changes: Any) -> TrainConfig:
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+
+@cache
+def field_docs() -> dict[str, str]:
+    """Field name -> its docstring, read from this class's source (the docs are the code)."""
+    tree = ast.parse(inspect.getsource(TrainConfig))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs: dict[str, str] = {}
+    for node, following in zip(body, body[1:], strict=False):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+                and isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant)
+                and isinstance(following.value.value, str)):
+            docs[node.target.id] = " ".join(following.value.value.split())
+    return docs
+
+
+def _field_types() -> dict[str, type]:
+    defaults = TrainConfig()
+    return {f.name: type(getattr(defaults, f.name)) for f in dataclasses.fields(TrainConfig)}
+
+
+def parse_train_node(node: Node, base: TrainConfig | None = None) -> TrainConfig:
+    """Read a `train:` mapping (missing keys keep `base`'s values); errors name file and key."""
+    base = base or TrainConfig()
+    if node.value is None:
+        return base
+    types = _field_types()
+    node.reject_unknown(frozenset(types))
+    changes: dict[str, Any] = {}
+    for key, child in node.items():
+        kind = types[key]
+        if kind is bool:
+            changes[key] = child.boolean()
+        elif kind is int:
+            changes[key] = child.integer()
+        elif kind is float:
+            changes[key] = child.number()
+        else:
+            changes[key] = child.string()
+    try:
+        return dataclasses.replace(base, **changes)
+    except ConfigError as exc:
+        # Re-point the message at the file and the `train.` key path.
+        raise ConfigError(str(exc).replace("train:", f"{node.source}: train.", 1)) from None
+
+
+def load_train_config(world_path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """The `train:` section of a scenario file (defaults where absent), then `overrides`."""
+    root = load_yaml(world_path)
+    config = parse_train_node(root.get("train", None) if isinstance(root.value, dict) else
+                              Node(None, str(world_path), "train"))
+    return apply_overrides(config, overrides or {})
+
+
+def apply_overrides(config: TrainConfig, overrides: dict[str, Any]) -> TrainConfig:
+    """`config` with the non-None entries of `overrides` (command-line values) applied."""
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    try:
+        return dataclasses.replace(config, **changes)
+    except ConfigError as exc:
+        raise ConfigError(str(exc).replace("train:", "command line: --", 1).replace("-- ", "--", 1)) from None
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add one `--field-name` option per TrainConfig field (help text = the field's docstring)."""
+    group = parser.add_argument_group("hyperparameters (override the scenario's train: section)")
+    docs = field_docs()
+    defaults = TrainConfig()
+    for name, kind in _field_types().items():
+        flag = "--" + name.replace("_", "-")
+        help_text = f"{docs.get(name, '')} [default {getattr(defaults, name)!r}]"
+        if kind is bool:
+            group.add_argument(flag, dest=f"cfg_{name}", action=argparse.BooleanOptionalAction,
+                               default=None, help=help_text)
+        else:
+            group.add_argument(flag, dest=f"cfg_{name}", type=kind, default=None, metavar=kind.__name__.upper(),
+                               help=help_text)
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """The hyperparameters given on the command line (None where not given)."""
+    return {name: getattr(args, f"cfg_{name}", None) for name in _field_types()}

@@ -1,0 +1,131 @@
+"""One view of single- and multi-drone environments for the learner.
+
+The trainer, evaluation and rule extraction see every scenario as "N drones, each with its own
+observation and reward, acting simultaneously"; a Gymnasium env is the N = 1 case and a
+PettingZoo ParallelEnv the general one. Episodes are reset explicitly with a seed (Gymnasium 1.x
+has no autoreset outside vector envs, and per-episode seeds make a resumed run exact).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+
+@dataclass
+class StepResult:
+    """What the drones still flying got from one simultaneous step (keyed by drone index)."""
+
+    obs: dict[int, np.ndarray]
+    rewards: dict[int, float]
+    terminated: dict[int, bool]
+    truncated: dict[int, bool]
+    infos: dict[int, dict[str, Any]] = field(default_factory=dict)
+
+
+class DronesEnv:
+    """A Gymnasium Env or a PettingZoo ParallelEnv behind one multi-drone interface."""
+
+    def __init__(self, env: Any) -> None:
+        self.env = env
+        self.parallel = hasattr(env, "possible_agents")
+        if self.parallel:
+            self.agent_names = list(env.possible_agents)
+            space = env.observation_space(self.agent_names[0])
+            action_space = env.action_space(self.agent_names[0])
+        else:
+            self.agent_names = ["drone_0"]
+            space, action_space = env.observation_space, env.action_space
+        if not isinstance(action_space, gym.spaces.Discrete):
+            raise TypeError(f"DQN needs a Discrete action space, got {action_space}")
+        self.num_drones = len(self.agent_names)
+        self.obs_dim = int(np.prod(space.shape))
+        self.n_actions = int(action_space.n)
+        self.live: list[int] = []
+
+    def reset(self, seed: int) -> tuple[dict[int, np.ndarray], dict[int, dict[str, Any]]]:
+        """Start an episode; every drone is live."""
+        if self.parallel:
+            obs, infos = self.env.reset(seed=seed)
+            self.live = [self.agent_names.index(a) for a in obs]
+            return ({self.agent_names.index(a): self._flat(o) for a, o in obs.items()},
+                    {self.agent_names.index(a): dict(i) for a, i in (infos or {}).items()})
+        obs, info = self.env.reset(seed=seed)
+        self.live = [0]
+        return {0: self._flat(obs)}, {0: dict(info)}
+
+    def step(self, actions: dict[int, int]) -> StepResult:
+        """One simultaneous step of the live drones; drones that end leave `live`."""
+        if self.parallel:
+            named = {self.agent_names[i]: int(a) for i, a in actions.items()}
+            obs, rewards, terms, truncs, infos = self.env.step(named)
+            index = self.agent_names.index
+            result = StepResult(
+                obs={index(a): self._flat(o) for a, o in obs.items()},
+                rewards={index(a): float(r) for a, r in rewards.items()},
+                terminated={index(a): bool(t) for a, t in terms.items()},
+                truncated={index(a): bool(t) for a, t in truncs.items()},
+                infos={index(a): dict(i) for a, i in infos.items()},
+            )
+        else:
+            obs, reward, term, trunc, info = self.env.step(int(actions[0]))
+            result = StepResult({0: self._flat(obs)}, {0: float(reward)}, {0: bool(term)},
+                                {0: bool(trunc)}, {0: dict(info)})
+        self.live = [i for i in self.live if not (result.terminated.get(i) or result.truncated.get(i))]
+        return result
+
+    def close(self) -> None:
+        self.env.close()
+
+    @staticmethod
+    def _flat(obs: Any) -> np.ndarray:
+        return np.asarray(obs, dtype=np.float32).reshape(-1)
+
+
+EnvFactory = Callable[[int], Any]
+"""Builds a fresh Gymnasium or PettingZoo env given a seed."""
+
+
+def scenario_env_factory(world: str | Path, autopilot: str = "direct", **kwargs: Any) -> EnvFactory:
+    """Factory for the scenario file `world`: a Gymnasium env for one drone, a PettingZoo
+    ParallelEnv for several (`sitl_bridge.envs.make_env` / `make_parallel_env`)."""
+    from sitl_bridge import envs
+    from sitl_bridge.world import load_world
+
+    multi = load_world(world).num_vehicles > 1
+
+    def build(seed: int) -> Any:
+        make = envs.make_parallel_env if multi else envs.make_env
+        return make(str(world), autopilot=autopilot, seed=seed, **kwargs)
+
+    return build
+
+
+def episode_outcome(info: dict[str, Any], terminated: bool, truncated: bool) -> str:
+    """goal / crash / out / timeout: the env's `info["outcome"]` when it gives one."""
+    outcome = info.get("outcome")
+    if isinstance(outcome, str) and outcome:
+        return outcome
+    if truncated and not terminated:
+        return "timeout"
+    return "terminated"
+
+
+def reward_terms(info: dict[str, Any]) -> dict[str, float]:
+    """Per-term rewards of one step (`info["reward_terms"]`), {} when the env gives none."""
+    terms = info.get("reward_terms") or {}
+    return {str(k): float(v) for k, v in terms.items()}
+
+
+def sim_time_s(info: dict[str, Any]) -> float | None:
+    """Simulated time the env reports (`sim_time_s` or `time_us`), None when it reports none."""
+    if "sim_time_s" in info:
+        return float(info["sim_time_s"])
+    if "time_us" in info:
+        return float(info["time_us"]) / 1e6
+    return None

@@ -1,0 +1,86 @@
+"""The episode log: `episodes.jsonl`, one JSON record per drone per finished episode.
+
+Appended (and fsync'd) before each checkpoint; the checkpoint records the file's length, so a
+resume cuts off records of episodes that were logged but never checkpointed: numbering continues
+with no gap and no duplicate.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from sitl_bridge.rl.atomic import append_durably
+
+OUTCOMES = ("goal", "crash", "out", "timeout")
+
+
+@dataclass
+class EpisodeRecord:
+    """What one drone did in one episode."""
+
+    episode: int
+    """Episode index, 0-based, continuous across resumes."""
+    drone: int
+    actions: list[int]
+    """Action codes in order (the thesis's behaviour strings)."""
+    reward: float
+    """Cumulative reward."""
+    reward_terms: dict[str, float]
+    """Cumulative reward per named term (closer_to_goal, crash, ...)."""
+    outcome: str
+    """goal, crash, out or timeout."""
+    steps: int
+    sim_time_s: float
+    """Simulated seconds the episode took."""
+    wall_time_s: float
+    """Real seconds the episode took (simulation + learning)."""
+    epsilon: float
+    """Exploration rate at the episode's start."""
+    mean_loss: float | None
+    """Mean training loss over the episode's updates (None before learning starts)."""
+    global_step: int = 0
+    """Environment steps taken by the run when the episode ended."""
+    env_seed: int = 0
+    """Seed the episode's reset used (re-runs the same start and goal)."""
+    extra: dict = field(default_factory=dict)
+    """Anything else the environment reported at the end (positions, ...)."""
+
+    @property
+    def success(self) -> bool:
+        return self.outcome == "goal"
+
+
+class EpisodeLog:
+    """Append-only JSON Lines file of EpisodeRecords."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.touch(exist_ok=True)
+
+    def append(self, records: list[EpisodeRecord]) -> int:
+        """Append records durably; returns the file's size in bytes afterwards."""
+        text = "".join(json.dumps(asdict(r), separators=(",", ":")) + "\n" for r in records)
+        return append_durably(self.path, text.encode())
+
+    def size(self) -> int:
+        return self.path.stat().st_size
+
+    def truncate(self, size: int) -> None:
+        """Cut the log back to `size` bytes (records after the restored checkpoint)."""
+        with open(self.path, "r+b") as handle:
+            handle.truncate(size)
+            os.fsync(handle.fileno())
+
+
+def read_records(path: str | Path) -> list[dict]:
+    """Every complete record of an episode log (a torn last line is ignored)."""
+    records: list[dict] = []
+    with open(path) as handle:
+        for line in handle:
+            if not line.endswith("\n"):
+                break
+            records.append(json.loads(line))
+    return records

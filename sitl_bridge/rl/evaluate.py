@@ -1,0 +1,78 @@
+"""Greedy evaluation of a trained policy: success rate, crash rate, mean reward, mean steps."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sitl_bridge.rl.drones_env import DronesEnv, EnvFactory, scenario_env_factory
+from sitl_bridge.rl.policy import policy_from_checkpoint
+from sitl_bridge.rl.rollout import Trace, eval_seeds, rollout
+
+
+@dataclass
+class EvalResult:
+    """Greedy performance over `episodes` episodes (rates count every drone-episode)."""
+
+    world: str
+    episodes: int
+    drone_episodes: int
+    success_rate: float
+    crash_rate: float
+    out_rate: float
+    timeout_rate: float
+    mean_reward: float
+    mean_steps: float
+    mean_steps_success: float | None
+    """Mean steps of the successful episodes (None if none succeeded)."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self) -> str:
+        return (f"{self.world}: success {self.success_rate:.0%}, crash {self.crash_rate:.0%}, "
+                f"out {self.out_rate:.0%}, timeout {self.timeout_rate:.0%}, mean reward "
+                f"{self.mean_reward:.1f}, mean steps {self.mean_steps:.1f} ({self.episodes} episodes)")
+
+
+def summarize(world: str, episodes: int, traces: list[Trace]) -> EvalResult:
+    """Rates and means of a list of rollouts."""
+    def rate(outcome: str) -> float:
+        return float(np.mean([t.outcome == outcome for t in traces])) if traces else 0.0
+
+    wins = [t.steps for t in traces if t.outcome == "goal"]
+    return EvalResult(
+        world=world, episodes=episodes, drone_episodes=len(traces),
+        success_rate=rate("goal"), crash_rate=rate("crash"), out_rate=rate("out"), timeout_rate=rate("timeout"),
+        mean_reward=float(np.mean([t.reward for t in traces])) if traces else 0.0,
+        mean_steps=float(np.mean([t.steps for t in traces])) if traces else 0.0,
+        mean_steps_success=float(np.mean(wins)) if wins else None,
+    )
+
+
+def evaluate_policy(policy: Callable[[np.ndarray], int], env_factory: EnvFactory, *, world: str,
+                    episodes: int, seed: int = 0) -> tuple[EvalResult, list[Trace]]:
+    """Fly `policy` greedily for `episodes` episodes on fresh seeds, in a new env."""
+    env = DronesEnv(env_factory(seed))
+    try:
+        return evaluate_on(env, policy, world=world, episodes=episodes, seed=seed)
+    finally:
+        env.close()
+
+
+def evaluate_on(env: DronesEnv, policy: Callable[[np.ndarray], int], *, world: str, episodes: int,
+                seed: int = 0) -> tuple[EvalResult, list[Trace]]:
+    """Fly `policy` greedily for `episodes` episodes on evaluation seeds in an open env."""
+    traces = rollout(env, policy, eval_seeds(seed, episodes))
+    return summarize(world, episodes, traces), traces
+
+
+def evaluate_checkpoint(checkpoint: str | Path, world: str | Path, *, episodes: int, autopilot: str = "direct",
+                        seed: int = 0) -> tuple[EvalResult, list[Trace]]:
+    """Greedy evaluation of a checkpoint (file or run directory) in the scenario `world`."""
+    policy = policy_from_checkpoint(checkpoint)
+    return evaluate_policy(policy, scenario_env_factory(world, autopilot), world=str(world),
+                           episodes=episodes, seed=seed)

@@ -1,0 +1,139 @@
+"""The experience replay on disk: append-only array shards, never rewritten.
+
+Rows (see `replay.transition_dtype`) are appended to `seg_000000.bin`, `seg_000001.bin`, ... of
+`segment_rows` rows each, fsync'd after every episode. A checkpoint records how many rows existed
+and a CRC32 of each live shard's prefix, so a resume truncates what a killed run appended after its
+last checkpoint and detects a damaged shard. Shards whose rows can no longer be in any kept
+checkpoint's replay are deleted. The layout is described in `format.json` (no pickle anywhere).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sitl_bridge.rl.atomic import atomic_write_json, fsync_dir
+from sitl_bridge.rl.replay import transition_dtype
+
+FORMAT_VERSION = 1
+
+
+class ReplayCorrupt(RuntimeError):
+    """The replay shards on disk do not match what a checkpoint recorded."""
+
+
+@dataclass
+class ReplayStoreState:
+    """What a checkpoint records about the replay shards."""
+
+    total_rows: int = 0
+    crc: dict[int, int] = field(default_factory=dict)
+    """CRC32 of each live shard's first rows (as many as existed at the checkpoint)."""
+
+    def to_json(self) -> dict:
+        return {"total_rows": self.total_rows, "crc": {str(k): v for k, v in self.crc.items()}}
+
+    @classmethod
+    def from_json(cls, value: dict) -> ReplayStoreState:
+        return cls(int(value["total_rows"]), {int(k): int(v) for k, v in value["crc"].items()})
+
+
+class ReplayStore:
+    """Append-only shard files of one run's replay, in `directory`."""
+
+    def __init__(self, directory: str | Path, obs_dim: int, segment_rows: int) -> None:
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.dtype = transition_dtype(obs_dim)
+        self.segment_rows = segment_rows
+        self.state = ReplayStoreState()
+        layout = {"version": FORMAT_VERSION, "obs_dim": obs_dim, "segment_rows": segment_rows,
+                  "row_bytes": self.dtype.itemsize, "dtype": [list(map(str, f)) for f in self.dtype.descr]}
+        format_path = self.directory / "format.json"
+        if format_path.exists():
+            existing = json.loads(format_path.read_text())
+            if existing != json.loads(json.dumps(layout)):
+                raise ReplayCorrupt(f"{format_path}: replay layout {existing} does not match {layout}")
+        else:
+            atomic_write_json(format_path, layout)
+
+    def _path(self, segment: int) -> Path:
+        return self.directory / f"seg_{segment:06d}.bin"
+
+    def append(self, rows: np.ndarray) -> None:
+        """Append rows durably (fsync) to the shards."""
+        offset = 0
+        while offset < len(rows):
+            segment, row_in_segment = divmod(self.state.total_rows, self.segment_rows)
+            take = min(len(rows) - offset, self.segment_rows - row_in_segment)
+            data = rows[offset:offset + take].tobytes()
+            path = self._path(segment)
+            created = not path.exists()
+            with open(path, "ab") as handle:
+                # A killed run may have left bytes past the checkpointed rows: write where they end.
+                handle.truncate(row_in_segment * self.dtype.itemsize)
+                handle.write(data)
+                handle.flush()
+                os.fsync(handle.fileno())
+            if created:
+                fsync_dir(self.directory)
+            self.state.crc[segment] = zlib.crc32(data, self.state.crc.get(segment, 0))
+            self.state.total_rows += take
+            offset += take
+
+    def restore(self, state: ReplayStoreState, capacity: int) -> np.ndarray:
+        """Check the shards against a checkpoint's `state`, cut off rows written after it, and
+        return its last min(total_rows, capacity) rows. Raises ReplayCorrupt on damage."""
+        first_needed_row = max(0, state.total_rows - capacity)
+        first_segment = first_needed_row // self.segment_rows
+        last_segment = (state.total_rows - 1) // self.segment_rows if state.total_rows else -1
+        chunks: list[np.ndarray] = []
+        for segment in range(first_segment, last_segment + 1):
+            rows_in_segment = min(self.segment_rows, state.total_rows - segment * self.segment_rows)
+            data = self._read_prefix(segment, rows_in_segment)
+            expected = state.crc.get(segment)
+            if expected is None or zlib.crc32(data) != expected:
+                raise ReplayCorrupt(f"replay shard {self._path(segment)} does not match its checksum")
+            chunks.append(np.frombuffer(data, dtype=self.dtype))
+        # Verified: now drop what came after the checkpoint.
+        for segment in range(last_segment + 1, last_segment + 1_000_000):
+            path = self._path(segment)
+            if not path.exists():
+                break
+            path.unlink()
+        if last_segment >= 0:
+            size = (state.total_rows - last_segment * self.segment_rows) * self.dtype.itemsize
+            with open(self._path(last_segment), "r+b") as handle:
+                handle.truncate(size)
+                os.fsync(handle.fileno())
+        fsync_dir(self.directory)
+        self.state = ReplayStoreState(state.total_rows, dict(state.crc))
+        rows = np.concatenate(chunks) if chunks else np.zeros(0, dtype=self.dtype)
+        skip = first_needed_row - first_segment * self.segment_rows
+        return rows[skip:].copy()
+
+    def _read_prefix(self, segment: int, rows: int) -> bytes:
+        path = self._path(segment)
+        want = rows * self.dtype.itemsize
+        try:
+            with open(path, "rb") as handle:
+                data = handle.read(want)
+        except FileNotFoundError:
+            raise ReplayCorrupt(f"replay shard {path} is missing") from None
+        if len(data) != want:
+            raise ReplayCorrupt(f"replay shard {path} is truncated ({len(data)} of {want} bytes)")
+        return data
+
+    def prune(self, keep_from_row: int) -> None:
+        """Delete shards holding only rows before `keep_from_row` (no kept checkpoint needs them)."""
+        last_dead = keep_from_row // self.segment_rows - 1
+        for segment in sorted(self.state.crc):
+            if segment > last_dead:
+                break
+            self._path(segment).unlink(missing_ok=True)
+            del self.state.crc[segment]

@@ -1,0 +1,77 @@
+"""Greedy rollouts: fly a policy for whole episodes and keep what each drone did.
+
+Shared by evaluation (success/crash rates) and rule extraction (what the behaviour looks like).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sitl_bridge.rl.drones_env import DronesEnv, episode_outcome
+
+
+@dataclass
+class Trace:
+    """One drone's episode under a fixed policy."""
+
+    episode: int
+    drone: int
+    seed: int
+    actions: list[int] = field(default_factory=list)
+    reward: float = 0.0
+    outcome: str = "timeout"
+    positions_enu_m: list[list[float]] = field(default_factory=list)
+    """Position after reset and after every step, when the env reports `position_enu_m`."""
+    goal_enu_m: list[float] | None = None
+
+    @property
+    def steps(self) -> int:
+        return len(self.actions)
+
+
+def _position(info: dict[str, Any]) -> list[float] | None:
+    value = info.get("position_enu_m")
+    return None if value is None else [float(v) for v in np.asarray(value).reshape(-1)]
+
+
+def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable[int]) -> list[Trace]:
+    """One episode per seed, every drone acting with `policy`; one Trace per drone per episode."""
+    traces: list[Trace] = []
+    for episode, seed in enumerate(seeds):
+        obs, infos = env.reset(seed)
+        mine = {i: Trace(episode, i, seed) for i in range(env.num_drones)}
+        for i, trace in mine.items():
+            start = _position(infos.get(i, {}))
+            if start is not None:
+                trace.positions_enu_m.append(start)
+            goal = infos.get(i, {}).get("goal_enu_m")
+            trace.goal_enu_m = None if goal is None else [float(v) for v in np.asarray(goal).reshape(-1)]
+        while env.live:
+            chosen = {i: policy(obs[i]) for i in env.live}
+            result = env.step(chosen)
+            for i, action in chosen.items():
+                info = result.infos.get(i, {})
+                trace = mine[i]
+                trace.actions.append(int(action))
+                trace.reward += result.rewards[i]
+                position = _position(info)
+                if position is not None:
+                    trace.positions_enu_m.append(position)
+                if result.terminated[i] or result.truncated[i]:
+                    trace.outcome = episode_outcome(info, result.terminated[i], result.truncated[i])
+            obs.update(result.obs)
+        traces.extend(mine.values())
+    return traces
+
+
+EVAL_SEED_OFFSET = 1_000_003
+"""Evaluation and rule-extraction episodes use seeds far from the training episodes'."""
+
+
+def eval_seeds(seed: int, episodes: int) -> list[int]:
+    """Reset seeds of `episodes` evaluation episodes (disjoint from training's)."""
+    return [int(s) for s in np.random.SeedSequence([seed, EVAL_SEED_OFFSET]).generate_state(episodes)]

@@ -1,0 +1,419 @@
+"""One crash-safe DQN training run in a run directory.
+
+The loop (CleanRL-like, explicit Gymnasium 1.x resets, several drones sharing one network):
+
+    for each episode:
+        reset with the episode's own seed (so a resumed run repeats it exactly)
+        until every drone is done: epsilon-greedy actions -> env step -> replay -> DQN update
+        append the episode's transitions to the replay shards, its records to episodes.jsonl,
+        then write a checkpoint (atomic) naming how much of both it covers
+
+`--resume` restores the newest checkpoint that verifies (falling back to older ones), cuts the
+replay shards and the episode log back to what it covers and continues: a run killed at any
+moment loses at most the episode in flight.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import random
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sitl_bridge.rl import checkpoint as ckpt
+from sitl_bridge.rl import run_dir as rd
+from sitl_bridge.rl.atomic import append_durably, atomic_write_json
+from sitl_bridge.rl.config import TrainConfig
+from sitl_bridge.rl.dqn import DQNAgent, NetworkShape, epsilon_at, learning_rate_at
+from sitl_bridge.rl.drones_env import (
+    DronesEnv,
+    EnvFactory,
+    episode_outcome,
+    reward_terms,
+    sim_time_s,
+)
+from sitl_bridge.rl.episode_log import EpisodeLog, EpisodeRecord, read_records
+from sitl_bridge.rl.evaluate import EvalResult, evaluate_on
+from sitl_bridge.rl.replay import ReplayBuffer
+from sitl_bridge.rl.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
+
+log = logging.getLogger(__name__)
+
+
+class ShapeMismatch(ValueError):
+    """A network cannot be transferred: its input/output sizes differ from the scenario's."""
+
+
+def episode_seed(run_seed: int, episode: int) -> int:
+    """The reset seed of `episode` in a run seeded `run_seed` (independent streams per episode)."""
+    return int(np.random.SeedSequence([run_seed, episode]).generate_state(1)[0])
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+@dataclass
+class TrainResult:
+    """Where a run stands when `train()` returns."""
+
+    run_dir: Path
+    episodes: int
+    global_step: int
+    wall_time_s: float
+    """Wall time of this call (not of earlier sessions of a resumed run)."""
+    success_rate: float
+    """Rolling success rate over the last `success_window` drone-episodes."""
+
+
+class Trainer:
+    """Trains one run; build with `Trainer.start(...)` or `Trainer.resume(...)`."""
+
+    def __init__(self, run_dir: Path, spec: rd.RunSpec, config: TrainConfig, env_factory: EnvFactory,
+                 *, progress: bool = True, warn: Callable[[str], None] | None = None) -> None:
+        self.run_dir = Path(run_dir)
+        self.spec = spec
+        self.config = config
+        self.progress = progress
+        self.warn = warn or (lambda msg: print(f"warning: {msg}", file=sys.stderr))
+        torch.set_num_threads(config.torch_threads)
+        self.device = resolve_device(config.device)
+
+        self.env = DronesEnv(env_factory(spec.seed))
+        # Seed everything before the network exists, so its initial weights are reproducible.
+        random.seed(spec.seed)
+        torch.manual_seed(spec.seed)
+        self.rng = np.random.default_rng(spec.seed)
+        shape = NetworkShape(self.env.obs_dim, self.env.n_actions, config.layers, config.hidden_units)
+        self.agent = DQNAgent(shape, config, self.device)
+        self.replay = ReplayBuffer(config.replay_capacity, shape.obs_dim)
+        self.store = ReplayStore(self.run_dir / rd.REPLAY, shape.obs_dim, config.replay_segment_rows)
+        self.episode_log = EpisodeLog(self.run_dir / rd.EPISODES_FILE)
+        self.checkpoint_dir = self.run_dir / rd.CHECKPOINTS
+
+        self.episode = 0
+        self.global_step = 0
+        self.updates = 0
+        self.epsilon_max = config.epsilon_max
+        self.recent_success: deque[bool] = deque(maxlen=config.success_window)
+        self._kept: list[tuple[Path, int]] = []  # (checkpoint, replay rows it needs)
+        self._writer: Any = None
+
+    # -- construction -------------------------------------------------------------------
+    @classmethod
+    def start(cls, out: str | Path, spec: rd.RunSpec, config: TrainConfig, env_factory: EnvFactory,
+              **kwargs: Any) -> Trainer:
+        """A new run directory under `out`; with `spec.init_from`, the network starts from that
+        run's (or checkpoint's) network and epsilon from `transfer_epsilon_max`."""
+        init = ckpt.resolve_checkpoint(spec.init_from) if spec.init_from else None
+        if init is not None:
+            config = _adopt_architecture(config, init[2]["network"])
+        run_dir = rd.create_run_dir(out, spec, config)
+        trainer = cls(run_dir, spec, config, env_factory, **kwargs)
+        if init is not None:
+            trainer._load_init(*init)
+        return trainer
+
+    @classmethod
+    def resume(cls, run_dir: str | Path, env_factory: EnvFactory | None = None,
+               episodes: int | None = None, **kwargs: Any) -> Trainer:
+        """Continue the run in `run_dir` from its newest good checkpoint (`episodes` extends the
+        budget). A run with no checkpoint yet starts over in the same directory."""
+        run_dir = Path(run_dir)
+        spec, config = rd.read_run_files(run_dir)
+        if episodes is not None and episodes != config.episodes:
+            config = config.replace(episodes=episodes)
+            rd.write_run_files(run_dir, spec, config)
+        if env_factory is None:
+            from sitl_bridge.rl.drones_env import scenario_env_factory
+            env_factory = scenario_env_factory(spec.world, spec.autopilot)
+        trainer = cls(run_dir, spec, config, env_factory, **kwargs)
+        if ckpt.list_checkpoints(trainer.checkpoint_dir):
+            ckpt.restore_newest(trainer.checkpoint_dir, trainer._restore, warn=trainer.warn)
+        elif spec.init_from:
+            trainer._load_init(*ckpt.resolve_checkpoint(spec.init_from))
+        return trainer
+
+    def _load_init(self, path: Path, tensors: dict[str, torch.Tensor], state: dict[str, Any]) -> None:
+        source = state["network"]
+        mine = self.agent.shape.to_dict()
+        if (source["obs_dim"], source["n_actions"]) != (mine["obs_dim"], mine["n_actions"]):
+            raise ShapeMismatch(
+                f"--init-from {path}: its network takes {source['obs_dim']} inputs and gives "
+                f"{source['n_actions']} outputs, but {self.spec.world} needs {mine['obs_dim']} "
+                f"inputs and {mine['n_actions']} outputs (pad the observations with dummy features "
+                "to transfer between scenarios)")
+        self.agent.online.load_state_dict(_prefixed(tensors, "online."))
+        self.agent.align_target()
+        self.epsilon_max = self.config.transfer_epsilon_max
+
+    # -- checkpoint contents (the explicit save list) --------------------------------------
+    def _state_tensors(self) -> dict[str, torch.Tensor]:
+        buffer = io.BytesIO()
+        torch.save(self.agent.optimizer.state_dict(), buffer)
+        tensors = {f"online.{k}": v for k, v in self.agent.online.state_dict().items()}
+        tensors.update({f"target.{k}": v for k, v in self.agent.target.state_dict().items()})
+        tensors["optimizer"] = torch.frombuffer(bytearray(buffer.getvalue()), dtype=torch.uint8)
+        tensors["rng.torch"] = torch.get_rng_state()
+        return tensors
+
+    def _state_json(self, log_bytes: int) -> dict[str, Any]:
+        version, internal, gauss = random.getstate()
+        return {
+            "episode": self.episode,
+            "global_step": self.global_step,
+            "updates": self.updates,
+            "epsilon_max": self.epsilon_max,
+            "epsilon": self.epsilon(),
+            "learning_rate": self.agent.optimizer.param_groups[0]["lr"],
+            "network": self.agent.shape.to_dict(),
+            "world": self.spec.world,
+            "seed": self.spec.seed,
+            "config": self.config.to_dict(),
+            "replay": self.store.state.to_json(),
+            "log_bytes": log_bytes,
+            "recent_success": [bool(s) for s in self.recent_success],
+            "rng": {"python": [version, list(internal), gauss],
+                    "numpy": self.rng.bit_generator.state},
+        }
+
+    def _restore(self, path: Path, tensors: dict[str, torch.Tensor], state: dict[str, Any]) -> None:
+        if state["network"] != self.agent.shape.to_dict():
+            raise ckpt.CheckpointCorrupt(f"{path}: network {state['network']} does not match the run's "
+                                         f"{self.agent.shape.to_dict()}")
+        try:
+            rows = self.store.restore(ReplayStoreState.from_json(state["replay"]), self.config.replay_capacity)
+        except ReplayCorrupt as exc:
+            raise ckpt.CheckpointCorrupt(str(exc)) from None
+        self.agent.online.load_state_dict(_prefixed(tensors, "online."))
+        self.agent.target.load_state_dict(_prefixed(tensors, "target."))
+        optimizer_state = torch.load(io.BytesIO(tensors["optimizer"].numpy().tobytes()), weights_only=True)
+        self.agent.optimizer.load_state_dict(optimizer_state)
+        torch.set_rng_state(tensors["rng.torch"])
+        self.replay.restore(rows, state["replay"]["total_rows"])
+        self.episode_log.truncate(state["log_bytes"])
+        self.episode = state["episode"]
+        self.global_step = state["global_step"]
+        self.updates = state["updates"]
+        self.epsilon_max = state["epsilon_max"]
+        self.recent_success.extend(state["recent_success"])
+        version, internal, gauss = state["rng"]["python"]
+        random.setstate((version, tuple(internal), gauss))
+        self.rng.bit_generator.state = state["rng"]["numpy"]
+        self._kept = []
+        for older in sorted(ckpt.list_checkpoints(self.checkpoint_dir)):
+            try:
+                self._kept.append((older, ckpt.read_state(older)["replay"]["total_rows"]))
+            except ckpt.CheckpointCorrupt:
+                continue
+        log.info("resumed %s from %s (episode %d)", self.run_dir, path.name, self.episode)
+
+    def save_checkpoint(self) -> Path:
+        """Checkpoint the state after `self.episode` episodes; prune old checkpoints and shards."""
+        path = ckpt.checkpoint_path(self.checkpoint_dir, self.episode)
+        ckpt.save_checkpoint(path, self._state_tensors(), self._state_json(self.episode_log.size()))
+        self._kept.append((path, self.store.state.total_rows))
+        while len(self._kept) > self.config.checkpoints_kept:
+            old, _ = self._kept.pop(0)
+            old.unlink(missing_ok=True)
+        # Keep every replay row that any kept checkpoint could restore.
+        self.store.prune(self._kept[0][1] - self.config.replay_capacity)
+        return path
+
+    # -- the loop ---------------------------------------------------------------------------
+    def epsilon(self) -> float:
+        return epsilon_at(self.global_step, self.epsilon_max, self.config.epsilon_min, self.config.epsilon_decay)
+
+    def train(self, on_episode: Callable[[list[EpisodeRecord]], bool | None] | None = None) -> TrainResult:
+        """Train until `config.episodes` episodes are done. `on_episode(records)` runs after each
+        checkpointed episode; returning False stops early (resumable)."""
+        from tqdm import tqdm
+
+        start = time.perf_counter()
+        first_episode = self.episode
+        greedy = "-"
+        bar = tqdm(total=self.config.episodes, initial=self.episode, unit="ep", dynamic_ncols=True,
+                   disable=not self.progress, desc=Path(self.spec.world).stem)
+        try:
+            while self.episode < self.config.episodes:
+                records = self.run_episode()
+                self.save_checkpoint()
+                self._log_tensorboard(records)
+                elapsed = time.perf_counter() - start
+                bar.update(1)
+                if (self.config.eval_every and self.config.eval_episodes
+                        and self.episode % self.config.eval_every == 0 and self.episode < self.config.episodes):
+                    greedy = f"{self.evaluate().success_rate:.0%}"
+                bar.set_postfix(eps_s=f"{(self.episode - first_episode) / max(elapsed, 1e-9):.2f}",
+                                success=f"{self.success_rate():.2f}", epsilon=f"{records[0].epsilon:.3f}",
+                                greedy=greedy)
+                if on_episode is not None and on_episode(records) is False:
+                    break
+        finally:
+            bar.close()
+            if self._writer is not None:
+                self._writer.flush()
+        return TrainResult(self.run_dir, self.episode, self.global_step,
+                           time.perf_counter() - start, self.success_rate())
+
+    def evaluate(self, episodes: int | None = None) -> EvalResult:
+        """Greedy evaluation of the current network in the training scenario: appended to
+        evals.jsonl, written to eval.json (the latest), logged to TensorBoard."""
+        episodes = self.config.eval_episodes if episodes is None else episodes
+        start = time.perf_counter()
+        result, _ = evaluate_on(self.env, lambda obs: int(np.argmax(self.agent.q_values(obs))),
+                                world=self.spec.world, episodes=episodes, seed=self.spec.seed)
+        record = {**result.to_dict(), "after_episodes": self.episode, "global_step": self.global_step,
+                  "wall_time_s": time.perf_counter() - start}
+        atomic_write_json(self.run_dir / rd.EVAL_FILE, record)
+        append_durably(self.run_dir / rd.EVALS_FILE, (json.dumps(record) + "\n").encode())
+        if self._writer is not None:
+            self._writer.add_scalar("eval/success_rate", result.success_rate, self.episode - 1)
+            self._writer.add_scalar("eval/crash_rate", result.crash_rate, self.episode - 1)
+            self._writer.add_scalar("eval/mean_reward", result.mean_reward, self.episode - 1)
+        return result
+
+    def success_rate(self) -> float:
+        return float(np.mean(self.recent_success)) if self.recent_success else 0.0
+
+    def run_episode(self) -> list[EpisodeRecord]:
+        """Fly one training episode with every drone, learn from it, persist it."""
+        config, agent = self.config, self.agent
+        agent.set_learning_rate(learning_rate_at(self.episode, config.episodes,
+                                                 config.learning_rate, config.learning_rate_end))
+        wall_start = time.perf_counter()
+        env_seed = episode_seed(self.spec.seed, self.episode)
+        epsilon_start = self.epsilon()
+        obs, _ = self.env.reset(env_seed)
+        drones = range(self.env.num_drones)
+        actions: dict[int, list[int]] = {i: [] for i in drones}
+        rewards = dict.fromkeys(drones, 0.0)
+        terms: dict[int, dict[str, float]] = {i: {} for i in drones}
+        outcome: dict[int, str] = {}
+        final_info: dict[int, dict[str, Any]] = {}
+        losses: list[float] = []
+        new_rows: list[np.ndarray] = []
+        sim_time = 0.0
+        while self.env.live:
+            epsilon = self.epsilon()
+            chosen = {i: agent.act(obs[i], epsilon, self.rng) for i in self.env.live}
+            result = self.env.step(chosen)
+            self.global_step += 1
+            for i, action in chosen.items():
+                info = result.infos.get(i, {})
+                actions[i].append(action)
+                rewards[i] += result.rewards[i]
+                for name, value in reward_terms(info).items():
+                    terms[i][name] = terms[i].get(name, 0.0) + value
+                sim_time = sim_time_s(info) or sim_time
+                if result.terminated[i] or result.truncated[i]:
+                    outcome[i] = episode_outcome(info, result.terminated[i], result.truncated[i])
+                    final_info[i] = info
+            rows = self.replay.make_rows(
+                np.stack([obs[i] for i in chosen]), np.array(list(chosen.values())),
+                np.array([result.rewards[i] for i in chosen]), np.stack([result.obs[i] for i in chosen]),
+                np.array([float(result.terminated[i]) for i in chosen]))
+            self.replay.add_rows(rows)
+            new_rows.append(rows)
+            obs.update(result.obs)
+            if (len(self.replay) >= max(config.batch_size, config.learning_starts)
+                    and self.global_step % config.train_every == 0):
+                losses.append(agent.update(self.replay.sample(config.batch_size, self.rng, self.device)))
+                self.updates += 1
+                if config.target_update_unit == "steps" and self.updates % config.target_update_period == 0:
+                    agent.align_target()
+        self.episode += 1
+        if config.target_update_unit == "episodes" and self.episode % config.target_update_period == 0:
+            agent.align_target()
+
+        wall = time.perf_counter() - wall_start
+        records = [EpisodeRecord(
+            episode=self.episode - 1, drone=i, actions=actions[i], reward=rewards[i],
+            reward_terms=terms[i], outcome=outcome.get(i, "timeout"), steps=len(actions[i]),
+            sim_time_s=sim_time, wall_time_s=wall, epsilon=epsilon_start,
+            mean_loss=float(np.mean(losses)) if losses else None, global_step=self.global_step,
+            env_seed=env_seed, extra=_jsonable_extra(final_info.get(i, {})),
+        ) for i in drones]
+        self.recent_success.extend(r.success for r in records)
+        # Persist: replay rows, then log records, then the checkpoint naming both lengths.
+        if new_rows:
+            self.store.append(np.concatenate(new_rows))
+        self.episode_log.append(records)
+        return records
+
+    # -- TensorBoard ---------------------------------------------------------------------------
+    def _log_tensorboard(self, records: list[EpisodeRecord]) -> None:
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            # purge_step drops events a killed session wrote after its last checkpoint.
+            self._writer = SummaryWriter(str(self.run_dir / rd.TENSORBOARD), purge_step=self.episode - 1)
+        step = self.episode - 1
+        w = self._writer
+        w.add_scalar("episode/reward", float(np.mean([r.reward for r in records])), step)
+        w.add_scalar("episode/success", float(np.mean([r.success for r in records])), step)
+        w.add_scalar("episode/crash", float(np.mean([r.outcome == "crash" for r in records])), step)
+        w.add_scalar("episode/steps", float(np.mean([r.steps for r in records])), step)
+        w.add_scalar("episode/sim_time_s", records[0].sim_time_s, step)
+        w.add_scalar("episode/wall_time_s", records[0].wall_time_s, step)
+        w.add_scalar("train/epsilon", records[0].epsilon, step)
+        w.add_scalar("train/success_rate", self.success_rate(), step)
+        w.add_scalar("train/learning_rate", self.agent.optimizer.param_groups[0]["lr"], step)
+        if records[0].mean_loss is not None:
+            w.add_scalar("train/loss", records[0].mean_loss, step)
+        names = {name for r in records for name in r.reward_terms}
+        for name in sorted(names):
+            w.add_scalar(f"reward/{name}", float(np.mean([r.reward_terms.get(name, 0.0) for r in records])), step)
+
+    def close(self) -> None:
+        """Close the env and the TensorBoard writer."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        self.env.close()
+
+    def __enter__(self) -> Trainer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _prefixed(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+
+
+def _adopt_architecture(config: TrainConfig, network: dict[str, int]) -> TrainConfig:
+    """A transferred network keeps its depth and width, whatever this scenario's config says."""
+    if (config.layers, config.hidden_units) != (network["layers"], network["hidden_units"]):
+        log.warning("init-from network has %d layers x %d units; using that instead of %d x %d",
+                    network["layers"], network["hidden_units"], config.layers, config.hidden_units)
+        config = config.replace(layers=network["layers"], hidden_units=network["hidden_units"])
+    return config
+
+
+def _jsonable_extra(info: dict[str, Any]) -> dict[str, Any]:
+    """Final positions etc. from the env's info, as plain JSON values (for rules and plots)."""
+    extra: dict[str, Any] = {}
+    for key in ("position_enu_m", "goal_enu_m", "distance_to_goal_m", "start_enu_m"):
+        if key in info and info[key] is not None:
+            value = np.asarray(info[key], dtype=float)
+            extra[key] = [round(float(v), 3) for v in value.reshape(-1)] if value.ndim else round(float(value), 3)
+    return extra
+
+
+def read_run_records(run_dir: str | Path) -> list[dict]:
+    """The episode records of a run directory."""
+    return read_records(Path(run_dir) / rd.EPISODES_FILE)

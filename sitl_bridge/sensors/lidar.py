@@ -1,0 +1,126 @@
+"""`Lidar`: body-fixed range rays for every vehicle, cast in one pybullet `rayTestBatch`.
+
+Layout per vehicle (`LidarConfig`, from the world file): a horizontal ring (35 rays over 360
+deg by default), an upward fan and a downward fan (6 rays over 90 deg each, in the body x-z
+plane). Ray i of a group points at angle -fov/2 + (i + 0.5) fov / n: horizontal angles are
+measured from forward, counter-clockwise (FLU yaw; with an odd count the middle ray points
+forward), fan angles from straight up / down toward forward. Rays start at the body centre, so
+they never see their own body (bullet does not report a ray leaving a convex shape). No hit ->
+the maximum range, never inf/NaN. Scan on demand (e.g. once per env step): not every physics
+step.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as p
+
+from sitl_bridge.frames import quat_to_matrix_t
+from sitl_bridge.physics.simulation import Simulation
+from sitl_bridge.world.schema import LidarConfig
+
+__all__ = ["Lidar", "LidarConfig", "LidarScan", "ray_directions_flu"]
+
+
+@dataclass
+class LidarScan:
+    """One vehicle's ranges (m, from the body centre; max range when nothing was hit)."""
+
+    horizontal_m: np.ndarray
+    up_m: np.ndarray
+    down_m: np.ndarray
+    near: bool        # some flagged ray is below config.near_m
+    crash: bool       # some flagged ray is below config.crash_m
+    min_m: float      # shortest flagged ray (max range when none)
+    time_us: int = 0  # simulated time of the scan (extension of the contract)
+
+
+def _fan(count: int, fov_deg: float) -> list[float]:
+    fov = math.radians(fov_deg)
+    return [-fov / 2.0 + fov * (i + 0.5) / count for i in range(count)]
+
+
+def ray_directions_flu(config: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit ray directions in body FLU for the horizontal ring, the up fan and the down fan."""
+    horizontal = [(math.cos(a), math.sin(a), 0.0) for a in _fan(config.horizontal_rays, config.horizontal_fov_deg)]
+    up = [(math.sin(b), 0.0, math.cos(b)) for b in _fan(config.up_rays, config.up_fov_deg)]
+    down = [(math.sin(b), 0.0, -math.cos(b)) for b in _fan(config.down_rays, config.down_fov_deg)]
+    return (np.array(horizontal).reshape(-1, 3), np.array(up).reshape(-1, 3), np.array(down).reshape(-1, 3))
+
+
+class Lidar:
+    """Lidars of all vehicles of a simulation.
+
+    Args:
+        sim: the simulation whose vehicles carry the lidars.
+        config: None -> each vehicle's `lidar:` from the world file; one `LidarConfig` -> the
+            same for all vehicles; a sequence -> one per vehicle.
+    """
+
+    def __init__(self, sim: Simulation, config: LidarConfig | Sequence[LidarConfig] | None = None) -> None:
+        self.sim = sim
+        if config is None:
+            configs = [v.lidar for v in sim.world.vehicles]
+        elif isinstance(config, LidarConfig):
+            configs = [config] * sim.num_vehicles
+        else:
+            configs = list(config)
+        if len(configs) != sim.num_vehicles:
+            raise ValueError(f"expected {sim.num_vehicles} lidar configs, got {len(configs)}")
+        self.configs = tuple(configs)
+        # per vehicle: directions scaled to range (FLU), and the group split points
+        self._scaled: list[np.ndarray] = []
+        self._splits: list[tuple[int, int]] = []
+        self._flag_masks: list[np.ndarray] = []
+        for c in self.configs:
+            h, u, d = ray_directions_flu(c)
+            self._scaled.append(np.vstack((h, u, d)) * c.range_m)
+            self._splits.append((len(h), len(h) + len(u)))
+            mask = np.concatenate([np.full(len(g), name in c.flag_groups)
+                                   for name, g in (("horizontal", h), ("up", u), ("down", d))])
+            self._flag_masks.append(mask)
+        self._history: list[collections.deque[np.ndarray]] = [
+            collections.deque(maxlen=c.filter_window) for c in self.configs]
+
+    def reset(self) -> None:
+        """Forget the moving-average history (call after `Simulation.reset`)."""
+        for h in self._history:
+            h.clear()
+
+    def scan(self) -> list[LidarScan]:
+        """Cast every vehicle's rays at the current simulation state, one batch for all."""
+        starts: list[np.ndarray] = []
+        ends: list[np.ndarray] = []
+        for i, scaled in enumerate(self._scaled):
+            position, q_wxyz = self.sim.pose(i)
+            rotation = np.array(quat_to_matrix_t(q_wxyz)).reshape(3, 3)
+            origin = np.array(position)
+            ends.append(scaled @ rotation.T + origin)
+            starts.append(np.broadcast_to(origin, scaled.shape))
+        results = p.rayTestBatch(np.vstack(starts).tolist(), np.vstack(ends).tolist(),
+                                 physicsClientId=self.sim.client_id)
+        fractions = np.fromiter((r[2] for r in results), dtype=float, count=len(results))
+        scans = []
+        offset = 0
+        for i, c in enumerate(self.configs):
+            n = len(self._scaled[i])
+            ranges = fractions[offset:offset + n] * c.range_m
+            offset += n
+            history = self._history[i]
+            history.append(ranges)
+            if len(history) > 1:
+                ranges = np.mean(history, axis=0)
+            scans.append(self._make_scan(c, ranges, i))
+        return scans
+
+    def _make_scan(self, c: LidarConfig, ranges: np.ndarray, vehicle: int) -> LidarScan:
+        a, b = self._splits[vehicle]
+        flagged = ranges[self._flag_masks[vehicle]]
+        min_m = float(flagged.min()) if flagged.size else c.range_m
+        return LidarScan(horizontal_m=ranges[:a].copy(), up_m=ranges[a:b].copy(), down_m=ranges[b:].copy(),
+                         near=min_m < c.near_m, crash=min_m < c.crash_m, min_m=min_m, time_us=self.sim.time_us)

@@ -1,0 +1,250 @@
+"""`SensorSuite`: one vehicle's IMU, magnetometer, barometer, GPS and ground truth, with
+Gazebo-like rates and seeded noise, turned into one `SensorFrame` per physics step.
+
+Rates follow Gazebo-classic's iris: IMU and ground truth every step, magnetometer ~100 Hz
+(sampled when at least 10 ms passed: 83 Hz at 4 ms steps, like Gazebo), barometer 50 Hz, GPS
+5 Hz. Every sensor is noisy (PX4 marks a sensor STALE when it repeats identical values). Noise
+is drawn from the seeded generator in blocks, so the per-step cost is a list lookup.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sitl_bridge.frames import (
+    enu_to_ned_xyz,
+    flu_to_frd_xyz,
+    quat_enu_flu_to_ned_frd_t,
+    quat_rotate_inverse_t,
+)
+from sitl_bridge.physics.simulation import VehicleState
+from sitl_bridge.sensors.environment import (
+    KELVIN_OFFSET,
+    isa_pressure_pa,
+    isa_temperature_k,
+    magnetic_field_ned_gauss,
+    pressure_altitude_m,
+)
+from sitl_bridge.sensors.geodesy import Projection
+from sitl_bridge.world.schema import GeoHome
+
+# PX4's simulated IMU FIFO stores int16 counts: clamp to its ranges (16 g, 2000 deg/s)
+ACCEL_LIMIT_M_S2 = 156.0
+GYRO_LIMIT_RAD_S = 34.9
+
+
+@dataclass(frozen=True)
+class SensorRates:
+    """Sample rates (Hz) of the slower sensors; the IMU and ground truth run every step."""
+
+    mag_hz: float = 100.0
+    baro_hz: float = 50.0
+    gps_hz: float = 5.0
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """White-noise levels. IMU and mag are noise densities (per sqrt(Hz), Gazebo's current
+    IIM42653 / iris defaults), scaled by each sample period; the others are per-sample sigmas."""
+
+    gyro_density_rad_s_sqrt_hz: float = 8.727e-4
+    accel_density_m_s2_sqrt_hz: float = 6.37e-3
+    mag_density_gauss_sqrt_hz: float = 4e-4
+    baro_pa: float = 1.0
+    gps_horizontal_m: float = 0.02
+    gps_vertical_m: float = 0.04
+    gps_velocity_horizontal_m_s: float = 0.02
+    gps_velocity_vertical_m_s: float = 0.04
+    gps_eph_cm: int = 100
+    gps_epv_cm: int = 100
+    gps_satellites: int = 10
+
+
+@dataclass(frozen=True)
+class BaroSample:
+    """Barometer reading as HIL_SENSOR carries it."""
+
+    pressure_hpa: float
+    temperature_c: float
+    pressure_alt_m: float
+
+
+@dataclass(frozen=True)
+class GpsSample:
+    """GPS fix in HIL_GPS units: degE7, mm (AMSL), cm, cm/s (NED), centidegrees."""
+
+    lat_e7: int
+    lon_e7: int
+    alt_mm: int
+    eph_cm: int
+    epv_cm: int
+    vel_cm_s: int
+    vn_cm_s: int
+    ve_cm_s: int
+    vd_cm_s: int
+    cog_cdeg: int
+    fix_type: int
+    satellites: int
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Noise-free state in PX4's frames (what HIL_STATE_QUATERNION carries)."""
+
+    quaternion_ned_frd: np.ndarray        # (w, x, y, z), rotates FRD into NED
+    angular_velocity_frd_rad_s: np.ndarray
+    lat_e7: int
+    lon_e7: int
+    alt_mm: int
+    velocity_ned_m_s: np.ndarray
+    accel_ned_m_s2: np.ndarray            # coordinate acceleration (not specific force)
+    position_ned_m: np.ndarray
+
+
+@dataclass
+class SensorFrame:
+    """Everything the sensors produced at one physics step."""
+
+    time_us: int
+    accel_frd_m_s2: np.ndarray
+    gyro_frd_rad_s: np.ndarray
+    mag_frd_gauss: np.ndarray | None      # None when not updated this step
+    baro: BaroSample | None
+    gps: GpsSample | None
+    truth: GroundTruth
+
+
+class _NoiseBlock:
+    """Standard normal draws, `columns` per sample, drawn `rows` at a time from one generator."""
+
+    def __init__(self, rng: np.random.Generator, columns: int, rows: int) -> None:
+        self._rng = rng
+        self._columns = columns
+        self._rows = rows
+        self._block: list[list[float]] = []
+        self._next = 0
+
+    def take(self) -> list[float]:
+        if self._next >= len(self._block):
+            self._block = self._rng.standard_normal((self._rows, self._columns)).tolist()
+            self._next = 0
+        row = self._block[self._next]
+        self._next += 1
+        return row
+
+
+def _clamp(x: float, limit: float) -> float:
+    return limit if x > limit else -limit if x < -limit else x
+
+
+class SensorSuite:
+    """One vehicle's sensors. Call `sample` once per physics step, in step order.
+
+    Args:
+        home: geodetic origin of the world (for GPS, baro altitude and the magnetic field).
+        seed: seeds every noise stream of this suite (use a different seed per vehicle).
+        step_us: physics step, for the IMU noise scaling.
+        rates / noise: sensor rates and noise levels.
+    """
+
+    def __init__(self, home: GeoHome, *, seed: int, step_us: int = 4000, rates: SensorRates | None = None,
+                 noise: SensorNoise | None = None) -> None:
+        self.home = home
+        self.step_us = step_us
+        self.rates = rates or SensorRates()
+        self.noise = noise or SensorNoise()
+        self._projection = Projection(home)
+        self._field_ned = magnetic_field_ned_gauss(home)
+        n = self.noise
+        step_s = step_us * 1e-6
+        self._sigma_gyro = n.gyro_density_rad_s_sqrt_hz / math.sqrt(step_s)
+        self._sigma_accel = n.accel_density_m_s2_sqrt_hz / math.sqrt(step_s)
+        self._mag_period_us = int(round(1e6 / self.rates.mag_hz))
+        self._baro_period_us = int(round(1e6 / self.rates.baro_hz))
+        self._gps_period_us = int(round(1e6 / self.rates.gps_hz))
+        # the period actually achieved is a whole number of steps at or above the nominal one
+        mag_steps = max(1, -(-self._mag_period_us // step_us))
+        self._sigma_mag = n.mag_density_gauss_sqrt_hz / math.sqrt(mag_steps * step_s)
+        self._seed = seed
+        self.reset(seed)
+
+    def reset(self, seed: int | None = None) -> None:
+        """Restart the noise streams (re-seeded when `seed` is given) and the sample schedule."""
+        if seed is not None:
+            self._seed = seed
+        rng = np.random.default_rng(self._seed)
+        self._imu_noise = _NoiseBlock(rng, 6, 2048)
+        self._mag_noise = _NoiseBlock(rng, 3, 512)
+        self._baro_noise = _NoiseBlock(rng, 1, 512)
+        self._gps_noise = _NoiseBlock(rng, 6, 128)
+        self._next_mag_us = self._next_baro_us = self._next_gps_us = -(2**62)
+
+    def sample(self, state: VehicleState, time_us: int) -> SensorFrame:
+        """The sensor frame for the vehicle state at `time_us` (after the physics step)."""
+        position_enu, q_enu_flu, velocity_enu, omega_flu, force_flu, accel_enu = state.raw
+
+        # IMU: specific force and rates in FRD, white noise, clamped to PX4's FIFO range
+        nz = self._imu_noise.take()
+        sa, sg = self._sigma_accel, self._sigma_gyro
+        fx, fy, fz = flu_to_frd_xyz(*force_flu)
+        gx, gy, gz = flu_to_frd_xyz(*omega_flu)
+        accel = np.array((_clamp(fx + sa * nz[0], ACCEL_LIMIT_M_S2), _clamp(fy + sa * nz[1], ACCEL_LIMIT_M_S2),
+                          _clamp(fz + sa * nz[2], ACCEL_LIMIT_M_S2)))
+        gyro = np.array((_clamp(gx + sg * nz[3], GYRO_LIMIT_RAD_S), _clamp(gy + sg * nz[4], GYRO_LIMIT_RAD_S),
+                         _clamp(gz + sg * nz[5], GYRO_LIMIT_RAD_S)))
+
+        # ground truth in PX4's frames
+        q_ned_frd = quat_enu_flu_to_ned_frd_t(q_enu_flu)
+        pn, pe, pd = enu_to_ned_xyz(*position_enu)
+        vn, ve, vd = enu_to_ned_xyz(*velocity_enu)
+        lat_deg, lon_deg, alt_m = self._projection.to_geodetic(pn, pe, pd)
+        truth = GroundTruth(
+            quaternion_ned_frd=np.array(q_ned_frd),
+            angular_velocity_frd_rad_s=np.array((gx, gy, gz)),
+            lat_e7=int(round(lat_deg * 1e7)), lon_e7=int(round(lon_deg * 1e7)), alt_mm=int(round(alt_m * 1000.0)),
+            velocity_ned_m_s=np.array((vn, ve, vd)),
+            accel_ned_m_s2=np.array(enu_to_ned_xyz(*accel_enu)),
+            position_ned_m=np.array((pn, pe, pd)),
+        )
+
+        mag = None
+        if time_us >= self._next_mag_us:
+            self._next_mag_us = time_us + self._mag_period_us
+            bx, by, bz = quat_rotate_inverse_t(q_ned_frd, self._field_ned)
+            m = self._mag_noise.take()
+            s = self._sigma_mag
+            mag = np.array((bx + s * m[0], by + s * m[1], bz + s * m[2]))
+
+        baro = None
+        if time_us >= self._next_baro_us:
+            self._next_baro_us = time_us + self._baro_period_us
+            pressure_pa = isa_pressure_pa(alt_m) + self.noise.baro_pa * self._baro_noise.take()[0]
+            baro = BaroSample(pressure_hpa=pressure_pa * 0.01,
+                              temperature_c=isa_temperature_k(alt_m) - KELVIN_OFFSET,
+                              pressure_alt_m=pressure_altitude_m(pressure_pa))
+
+        gps = None
+        if time_us >= self._next_gps_us:
+            self._next_gps_us = time_us + self._gps_period_us
+            gps = self._gps(pn, pe, pd, vn, ve, vd)
+        return SensorFrame(time_us, accel, gyro, mag, baro, gps, truth)
+
+    def _gps(self, pn: float, pe: float, pd: float, vn: float, ve: float, vd: float) -> GpsSample:
+        n = self.noise
+        z = self._gps_noise.take()
+        lat, lon, alt = self._projection.to_geodetic(pn + n.gps_horizontal_m * z[0], pe + n.gps_horizontal_m * z[1],
+                                                     pd + n.gps_vertical_m * z[2])
+        vn += n.gps_velocity_horizontal_m_s * z[3]
+        ve += n.gps_velocity_horizontal_m_s * z[4]
+        vd += n.gps_velocity_vertical_m_s * z[5]
+        cog = math.degrees(math.atan2(ve, vn)) % 360.0
+        return GpsSample(
+            lat_e7=int(round(lat * 1e7)), lon_e7=int(round(lon * 1e7)), alt_mm=int(round(alt * 1000.0)),
+            eph_cm=n.gps_eph_cm, epv_cm=n.gps_epv_cm,
+            vel_cm_s=int(round(math.hypot(vn, ve) * 100.0)),
+            vn_cm_s=int(round(vn * 100.0)), ve_cm_s=int(round(ve * 100.0)), vd_cm_s=int(round(vd * 100.0)),
+            cog_cdeg=int(round(cog * 100.0)) % 36000, fix_type=3, satellites=n.gps_satellites,
+        )

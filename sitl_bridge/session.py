@@ -1,0 +1,459 @@
+"""`SimSession`: one simulation with its autopilots, ready for MAVLink clients.
+
+Composes world -> `Simulation` -> one `SensorSuite` and `HilLink` per vehicle -> one autopilot
+per vehicle -> `Lockstep` -> `SimRunner` (the background thread that owns the lockstep loop).
+Autopilots:
+
+- `stub` (default): the built-in PX4-compatible stub, in-process: its HIL client and MAVLink
+  API are pumped by the lockstep in the runner thread (no context switch, the fastest path).
+  With `stub_process=True` each stub is a `sitl-bridge stub -i N` subprocess instead.
+- `px4`: real PX4 SITL processes (`sitl_bridge.autopilot.px4`), started, connected and
+  observed ready before the session is handed over.
+- `external`: only the simulator; it waits for autopilots that connect on TCP 4560+i the way
+  Gazebo waits for a PX4 started by hand (`sitl-bridge stub -i N`, a PX4 of your own).
+
+Time: the session is the clock of the MAVSDK client (`run_for(seconds)` advances exactly that
+much simulated time, then holds). While held, in-process stubs keep answering MAVLink; a real
+PX4 is frozen in lockstep. After `start()` the simulation is held.
+
+Failsafe timeouts vs. speed factor: MAVSDK streams offboard setpoints and heartbeats in wall
+time (20 Hz, 1 Hz) while autopilots measure their loss timeouts in simulated time, so at F x
+real time the gap between two setpoints is F times longer in simulated time. Like PX4's rcS
+with PX4_SIM_SPEED_FACTOR, the timeouts marked `wall` in `px4_params/*.params`
+(COM_OF_LOSS_T, COM_DL_LOSS_T, COM_RC_LOSS_T) are multiplied by the speed factor (by 30 for
+F = 0, `autopilot.px4.MAX_SPEED_ASSUMED`), for PX4 (environment + read-back) and for the stub
+(its parameter table) alike; the other overrides of that file apply to the stub too, so both
+autopilots run with the same configuration.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from sitl_bridge.errors import ConfigError
+from sitl_bridge.hil import HilLink, Lockstep, SimRunner
+from sitl_bridge.physics.simulation import Simulation, VehicleState
+from sitl_bridge.sensors.suite import SensorSuite
+from sitl_bridge.world.loader import load_world
+from sitl_bridge.world.schema import Spawn, World
+
+log = logging.getLogger(__name__)
+
+AUTOPILOTS = ("stub", "px4", "external")
+HIL_BASE_PORT = 4560
+DEFAULT_WORLD = "empty"
+EXTRA_VEHICLE_SPACING_M = 3.0
+"""`num_vehicles` beyond the world's: copies of its last vehicle, this far apart (east)."""
+
+
+class SessionError(RuntimeError):
+    """The session could not start, or one of its parts died while running."""
+
+
+# -- world files -----------------------------------------------------------------------------
+def worlds_dirs() -> list[Path]:
+    """Where world files are looked for: $SITL_BRIDGE_WORLDS, worlds/ inside the package
+    (installed data), worlds/ of the source tree, ./worlds."""
+    here = Path(__file__).resolve().parent
+    dirs = [Path(os.environ["SITL_BRIDGE_WORLDS"])] if os.environ.get("SITL_BRIDGE_WORLDS") else []
+    dirs += [here / "worlds", here.parent / "worlds", Path.cwd() / "worlds"]
+    return [d for d in dirs if d.is_dir()]
+
+
+def resolve_world(name_or_path: str | os.PathLike[str]) -> Path:
+    """A world file from a path, or a bare name (`empty`, `window.yaml`) in `worlds_dirs()`."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    candidates = [path.name, f"{path.name}.yaml"] if path.suffix == "" else [path.name]
+    if path.parent == Path("."):
+        for directory in worlds_dirs():
+            for candidate in candidates:
+                if (directory / candidate).is_file():
+                    return directory / candidate
+    searched = ", ".join(str(d) for d in worlds_dirs()) or "no worlds/ directory found"
+    raise ConfigError(f"{name_or_path}: cannot find world file (searched {searched})")
+
+
+def default_world_path() -> Path:
+    """worlds/empty.yaml of this installation (works from any working directory)."""
+    return resolve_world(DEFAULT_WORLD)
+
+
+def with_vehicle_count(world: World, count: int) -> World:
+    """The world with exactly `count` vehicles: extra ones copy the last vehicle's spawn,
+    shifted east by `EXTRA_VEHICLE_SPACING_M` each; surplus ones are dropped."""
+    if count < 1:
+        raise ConfigError(f"{world.source}: vehicles: expected at least 1, got {count}")
+    vehicles = list(world.vehicles[:count])
+    if not vehicles:
+        raise ConfigError(f"{world.source}: world.vehicles: expected at least 1 vehicle to copy, got none")
+    template = vehicles[-1]
+    for k in range(1, count - len(vehicles) + 1):
+        x, y, z = template.spawn.position_m
+        spawn: Spawn = replace(template.spawn, position_m=(x + k * EXTRA_VEHICLE_SPACING_M, y, z))
+        vehicles.append(replace(template, name=f"{template.name}_{k}", spawn=spawn))
+    return replace(world, vehicles=tuple(vehicles))
+
+
+def _mode_name(custom_mode: int) -> str:
+    from sitl_bridge.autopilot.stub.commander import mode_name
+
+    return mode_name(custom_mode)
+
+
+class SimSession:
+    """World + simulation + sensors + HIL links + autopilots + runner thread (see module doc).
+
+    Args:
+        world: a loaded `World`, a world file, or a bare world name (`empty`).
+        autopilot: `stub`, `px4` or `external`.
+        speed_factor: F x real time while running; 0 = as fast as possible.
+        instance_base: vehicle k uses instance `instance_base + k` (ports 4560+i, 14580+i...).
+        seed: seeds the simulation (layout, movers) and the sensor noise.
+        px4_bin / px4_rootfs: PX4 SITL binary and ROMFS (`px4` only; PX4_BIN by default).
+        gui: pybullet GUI.
+        num_vehicles: override the world's vehicle count (see `with_vehicle_count`).
+        stub_process: run stubs as `sitl-bridge stub -i N` subprocesses (`stub` only).
+        stub_ground_truth: stubs use ground truth instead of estimating from the sensors.
+        params: extra autopilot parameters (PX4 names), applied after px4_params/.
+        run_dir: where PX4 keeps its working directories and logs (default: a temp dir).
+        connect_timeout_s: wall time allowed for autopilots to connect (external: forever
+            when None).
+        actuator_timeout_s: wall time a lockstep step waits for an autopilot's answer.
+        host: address the HIL links listen on.
+    """
+
+    def __init__(
+        self,
+        world: World | str | os.PathLike[str] = DEFAULT_WORLD,
+        *,
+        autopilot: str = "stub",
+        speed_factor: float = 1.0,
+        instance_base: int = 0,
+        seed: int = 0,
+        px4_bin: str | os.PathLike[str] | None = None,
+        px4_rootfs: str | os.PathLike[str] | None = None,
+        gui: bool = False,
+        num_vehicles: int | None = None,
+        stub_process: bool = False,
+        stub_ground_truth: bool = False,
+        params: Mapping[str, float] | None = None,
+        run_dir: str | os.PathLike[str] | None = None,
+        connect_timeout_s: float | None = 60.0,
+        actuator_timeout_s: float = 5.0,
+        host: str = "127.0.0.1",
+    ) -> None:
+        if autopilot not in AUTOPILOTS:
+            raise ConfigError(f"autopilot: expected one of {', '.join(AUTOPILOTS)}, got {autopilot!r}")
+        if not speed_factor >= 0:
+            raise ConfigError(f"speed_factor: expected a number >= 0, got {speed_factor!r}")
+        if isinstance(world, World):
+            self.world = world
+        else:
+            self.world = load_world(resolve_world(world))
+        if num_vehicles is not None:
+            self.world = with_vehicle_count(self.world, num_vehicles)
+        if self.world.num_vehicles < 1:
+            raise ConfigError(f"{self.world.source}: world.vehicles: expected at least 1 vehicle, got none")
+        self.autopilot = autopilot
+        self.speed_factor = float(speed_factor)
+        self.instance_base = instance_base
+        self.instances = [instance_base + k for k in range(self.world.num_vehicles)]
+        self.seed = seed
+        self.gui = gui
+        self.host = host
+        self.stub_process = stub_process
+        self.stub_ground_truth = stub_ground_truth
+        self.connect_timeout_s = connect_timeout_s
+        self.actuator_timeout_s = actuator_timeout_s
+        self.params = {name: float(value) for name, value in (params or {}).items()}
+        self._px4_bin, self._px4_rootfs = px4_bin, px4_rootfs
+        self._run_dir = Path(run_dir) if run_dir is not None else None
+        self.sim: Simulation | None = None
+        self.sensors: list[SensorSuite] = []
+        self.links: list[HilLink] = []
+        self.stubs: list[Any] = []         # in-process StubAutopilot per vehicle (stub only)
+        self.lockstep: Lockstep | None = None
+        self.runner: SimRunner | None = None
+        self.px4: Any = None               # Px4Fleet (px4 only)
+        self._processes: list[subprocess.Popen[bytes]] = []
+        self._closers: list[Callable[[], None]] = []
+        self._started = False
+        self._closed = False
+
+    # -- lifecycle --------------------------------------------------------------------------
+    @property
+    def num_vehicles(self) -> int:
+        return self.world.num_vehicles
+
+    def start(self) -> SimSession:
+        """Build everything, connect every autopilot, and leave the simulation held."""
+        if self._started:
+            return self
+        self._started = True
+        try:
+            self._start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def _start(self) -> None:
+        world = self.world
+        self.sim = Simulation(world, seed=self.seed, step_us=None, gui=self.gui)
+        self._closers.append(self.sim.close)
+        step_us = self.sim.step_us
+        self.sensors = [SensorSuite(world.home, seed=self.seed * 1000 + k, step_us=step_us)
+                        for k in range(self.num_vehicles)]
+        for instance in self.instances:
+            link = HilLink(instance, self.host, HIL_BASE_PORT, step_us=step_us)
+            self._closers.append(link.close)
+            self.links.append(link)
+        pumps: list[Callable[[], Any]] = []
+        if self.autopilot == "stub" and not self.stub_process:
+            pumps = self._start_stubs_in_process()
+        elif self.autopilot == "stub":
+            self._start_stub_processes()
+        elif self.autopilot == "px4":
+            self._start_px4()
+        self.lockstep = Lockstep(self.sim, self.sensors, self.links, speed_factor=self.speed_factor,
+                                 pumps=pumps, actuator_timeout_s=self.actuator_timeout_s)
+        self._accept_all()
+        if self.px4 is not None:
+            self.px4.wait_ready(self.lockstep)
+        self.runner = SimRunner(self.lockstep)
+        # First to close: the runner thread must stop before the links and sim it drives.
+        self._closers.append(self.runner.close)
+
+    def _start_stubs_in_process(self) -> list[Callable[[], Any]]:
+        from sitl_bridge.autopilot.stub import ParamTable, StubVehicle
+
+        pumps: list[Callable[[], Any]] = []
+        for instance in self.instances:
+            table = ParamTable(speed_factor=self.speed_factor)  # scales the `wall` timeouts
+            _apply_params(table, self.params)
+            vehicle = StubVehicle(instance, self.host, ground_truth_estimate=self.stub_ground_truth,
+                                  params=table)
+            self._closers.append(vehicle.close)
+            if not vehicle.connect(self.connect_timeout_s or 10.0):
+                raise SessionError(f"vehicle {instance}: stub could not connect to the HIL link")
+            self.stubs.append(vehicle.autopilot)
+            pumps.append(vehicle.pump)
+        return pumps
+
+    def _start_stub_processes(self) -> None:
+        for instance in self.instances:
+            command = [sys.executable, "-m", "sitl_bridge", "stub", "-i", str(instance)]
+            if self.stub_ground_truth:
+                command.append("--ground-truth")
+            for name, value in self.params.items():
+                command += ["--param", f"{name}={value:g}"]
+            process = subprocess.Popen(command, stdin=subprocess.DEVNULL, start_new_session=True)
+            self._processes.append(process)
+        self._closers.append(self._stop_processes)
+
+    def _start_px4(self) -> None:
+        from sitl_bridge.autopilot.px4 import Px4Config, Px4Fleet
+
+        run_dir = self._run_dir
+        if run_dir is None:
+            run_dir = Path(tempfile.mkdtemp(prefix="sitl-bridge-px4-"))
+        # px4 resolves px4_params/ itself (wall timeouts via env + read-back); only extras here.
+        config = Px4Config.create(self._px4_bin, run_dir, rootfs=self._px4_rootfs,
+                                  speed_factor=self.speed_factor, home=self.world.home,
+                                  extra_params=self.params)
+        self.px4 = Px4Fleet(config, self.instances)
+        self._closers.append(self.px4.stop)
+        self.px4.start()
+
+    def _accept_all(self) -> None:
+        """Wait (wall time) until every autopilot has connected to its HIL link."""
+        timeout = self.connect_timeout_s
+        deadline = None if timeout is None else time.monotonic() + timeout
+        pumps = self.lockstep.pumps if self.lockstep is not None else []
+        for link in self.links:
+            while not link.accept(0.05):
+                for pump in pumps:  # in-process stubs connect from their pump
+                    pump()
+                self.check()
+                if deadline is not None and time.monotonic() > deadline:
+                    raise SessionError(
+                        f"vehicle {link.instance}: no autopilot connected to TCP {link.host}:{link.port} "
+                        f"within {timeout:g} s")
+            if self.autopilot == "external":
+                log.info("vehicle %d: autopilot connected from %s", link.instance, link.peer)
+
+    def check(self) -> None:
+        """Raise if an autopilot process died or the runner thread stopped on an error."""
+        for instance, process in zip(self.instances, self._processes, strict=False):
+            code = process.poll()
+            if code is not None:
+                raise SessionError(f"vehicle {instance}: stub process exited with code {code}")
+        if self.px4 is not None:
+            self.px4.check_alive()
+        if self.runner is not None and self.runner.error is not None:
+            self.runner._raise_error()
+
+    def _stop_processes(self) -> None:
+        for process in self._processes:
+            if process.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(process.pid, signal.SIGTERM)
+        for process in self._processes:
+            try:
+                process.wait(5.0)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(process.pid, signal.SIGKILL)
+                process.wait(5.0)
+        self._processes = []
+
+    def close(self) -> None:
+        """Stop the runner, the autopilots, the links and the simulation. Idempotent; safe to
+        call after a partial start or from an exception handler."""
+        if self._closed:
+            return
+        self._closed = True
+        errors = []
+        for closer in reversed(self._closers):
+            try:
+                closer()
+            except Exception as exc:  # keep closing the rest
+                errors.append(exc)
+                log.warning("while closing the session: %s", exc)
+        self._closers.clear()
+
+    def __enter__(self) -> SimSession:
+        return self.start()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # -- clock ----------------------------------------------------------------------------------
+    def _require_runner(self) -> SimRunner:
+        if self.runner is None or self._closed:
+            raise SessionError("session is not running (use `with SimSession(...)` or start())")
+        return self.runner
+
+    @property
+    def time_us(self) -> int:
+        """Simulated time in microseconds."""
+        return self.sim.time_us if self.sim is not None else 0
+
+    @property
+    def time_s(self) -> float:
+        return self.time_us * 1e-6
+
+    @property
+    def step_s(self) -> float:
+        return self.sim.step_us * 1e-6 if self.sim is not None else 0.004
+
+    @property
+    def running(self) -> bool:
+        """True while simulated time advances (free-running or inside a run_for)."""
+        return self.runner is not None and self.runner.running
+
+    def run_for(self, seconds: float, wait: bool = True) -> None:
+        """Advance exactly `seconds` of simulated time (whole physics steps), then hold.
+        With `wait=False` return at once; `wait_held()` then waits for the end."""
+        runner = self._require_runner()
+        runner.run_for(seconds, wait=False)
+        if wait:
+            self.wait_held()
+
+    def wait_held(self, timeout_s: float | None = None) -> bool:
+        """Block until the simulation is held; False if still running after `timeout_s` wall."""
+        runner = self._require_runner()
+        try:
+            runner.wait(timeout_s)
+        except TimeoutError:
+            return False
+        return True
+
+    def resume(self) -> None:
+        """Free-run at the speed factor until `hold()` or `run_for()`."""
+        self._require_runner().resume()
+
+    def hold(self) -> None:
+        """Stop at the next step boundary (returns once held)."""
+        self._require_runner().hold()
+
+    @property
+    def real_time_factor(self) -> float:
+        """Achieved simulated/wall time of the current running segment (or the last one)."""
+        return self.lockstep.real_time_factor if self.lockstep is not None else 0.0
+
+    @property
+    def overall_real_time_factor(self) -> float:
+        """Simulated/wall time over all running segments so far (holds excluded)."""
+        return self.lockstep.stats.real_time_factor if self.lockstep is not None else 0.0
+
+    # -- observation -------------------------------------------------------------------------
+    def vehicle_state(self, vehicle: int) -> VehicleState:
+        """Ground truth of vehicle `vehicle` (index, not instance). Read it while held."""
+        if self.sim is None:
+            raise SessionError("session is not running")
+        return self.sim.state(vehicle)
+
+    def vehicle_summary(self, vehicle: int) -> tuple[str, bool]:
+        """(mode name, armed) of a vehicle as its autopilot reports it: the stub's own state
+        in-process, else the armed flag of its HIL heartbeat/actuators (mode unknown: '-')."""
+        if self.stubs:
+            stub = self.stubs[vehicle]
+            return _mode_name(stub.custom_mode), bool(stub.armed)
+        if self.px4 is not None:
+            obs = self.px4.autopilots[vehicle].observation
+            return _mode_name(obs.custom_mode), bool(obs.armed)
+        link = self.links[vehicle]
+        armed = link.heartbeat.armed if link.heartbeat is not None else link.command.armed
+        return "-", bool(armed)
+
+    def status_line(self) -> str:
+        """One line: sim time, real-time factor, per vehicle mode, armed flag, position ENU."""
+        parts = [f"t={self.time_s:8.2f} s", f"rtf {self.real_time_factor:6.1f}x"]
+        for k, instance in enumerate(self.instances):
+            mode, armed = self.vehicle_summary(k)
+            x, y, z = self.vehicle_state(k).position_enu_m
+            parts.append(f"[{instance}] {mode} {'ARMED' if armed else 'disarmed'} "
+                         f"E{x:+.1f} N{y:+.1f} U{z:+.1f}")
+        return " | ".join(parts)
+
+
+def _apply_params(table: Any, values: Mapping[str, float]) -> None:
+    """Set (or add) parameters in a stub ParamTable; integers stay INT32."""
+    from sitl_bridge.autopilot.stub.params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
+
+    for name, value in values.items():
+        if name in table:
+            table.set(name, value)
+        else:
+            kind = MAV_PARAM_TYPE_INT32 if float(value).is_integer() else MAV_PARAM_TYPE_REAL32
+            table.add(name, value, kind)
+
+
+def open_session(*args: Any, **kwargs: Any) -> SimSession:
+    """`SimSession(...).start()` (for callers that manage the lifetime themselves)."""
+    return SimSession(*args, **kwargs).start()
+
+
+__all__: Sequence[str] = (
+    "AUTOPILOTS",
+    "SessionError",
+    "SimSession",
+    "default_world_path",
+    "open_session",
+    "resolve_world",
+    "with_vehicle_count",
+)

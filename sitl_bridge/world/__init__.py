@@ -1,0 +1,28 @@
+"""Worlds as data: the `world:` schema of scenario files, its loader, and per-episode layouts."""
+
+from sitl_bridge.world.layout import GoalPlacement, Layout, ObstaclePlacement, realize
+from sitl_bridge.world.loader import load_world, parse_scenario
+from sitl_bridge.world.schema import (
+    AlongPath,
+    GeoHome,
+    GoalRegion,
+    LidarConfig,
+    Obstacle,
+    ObstacleRandomization,
+    Opening,
+    PatrolMover,
+    PhysicsSettings,
+    RandomLegsMover,
+    Shape,
+    Spawn,
+    VehicleSpec,
+    Workspace,
+    World,
+)
+
+__all__ = [
+    "AlongPath", "GeoHome", "GoalPlacement", "GoalRegion", "Layout", "LidarConfig", "Obstacle",
+    "ObstaclePlacement", "ObstacleRandomization", "Opening", "PatrolMover", "PhysicsSettings",
+    "RandomLegsMover", "Shape", "Spawn", "VehicleSpec", "Workspace", "World", "load_world",
+    "parse_scenario", "realize",
+]

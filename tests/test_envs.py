@@ -1,0 +1,216 @@
+"""Single-drone Gymnasium envs on the `direct` backend: API, scripted thesis policies, determinism,
+a scenario added with no code, and the episode-end rules. Real pybullet and stub autopilot."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import sitl_bridge.envs as envs
+from sitl_bridge.envs import SINGLE_ENVS, make_env
+
+WORLDS = Path(__file__).resolve().parents[1] / "worlds"
+
+
+def run_actions(env: gym.Env, actions: list[int], seed: int = 0) -> tuple[list[np.ndarray], dict]:
+    """Fly `actions` from a seeded reset; observations seen and the last info."""
+    obs, info = env.reset(seed=seed)
+    seen = [obs]
+    for action in actions:
+        obs, reward, terminated, truncated, info = env.step(action)
+        seen.append(obs)
+        assert env.observation_space.contains(obs)
+        assert np.isfinite(reward)
+        if terminated or truncated:
+            break
+    return seen, info
+
+
+@pytest.mark.parametrize("env_id", list(SINGLE_ENVS))
+def test_check_env_on_every_single_drone_scenario(env_id: str) -> None:
+    env = make_env(env_id, seed=0)
+    try:
+        check_env(env, skip_render_check=True)
+        assert env.action_space == gym.spaces.Discrete(8)
+        assert env.observation_space.shape == (env.scenario.task.observation_size,)
+    finally:
+        env.close()
+
+
+def test_registered_ids_make_through_gymnasium() -> None:
+    env = gym.make("sitl_bridge/Empty-v0")
+    try:
+        obs, info = env.reset(seed=1)
+        assert obs.shape == env.observation_space.shape
+        assert info["outcome"] is None and info["reward_terms"] == {}
+    finally:
+        env.close()
+
+
+def test_always_toward_goal_reaches_the_random_goal() -> None:
+    env = make_env(WORLDS / "random_goal.yaml")
+    try:
+        goals = []
+        for seed in (0, 1, 2):
+            _, info = run_actions(env, [6] * env.scenario.task.max_steps, seed=seed)
+            assert info["outcome"] == "goal", (seed, info)
+            assert info["reward_terms"]["goal_reached"] == 500.0
+            goals.append(tuple(info["goal_enu_m"]))
+        assert len(set(goals)) == 3  # the goal is re-drawn every episode
+    finally:
+        env.close()
+
+
+def test_thesis_solution_flies_over_the_obstacle_to_the_goal() -> None:
+    env = make_env(WORLDS / "obstacle.yaml")
+    try:
+        actions = [3, 5, 5, 3, 3, 3, 3, 4, 4]
+        obs, _ = env.reset(seed=0)
+        for k, action in enumerate(actions):
+            obs, reward, terminated, truncated, info = env.step(action)
+            if k < len(actions) - 1:
+                assert not (terminated or truncated), (k, info)
+            if k == 4:  # above the block
+                assert info["position_enu_m"][2] > 4.0
+        assert terminated and info["outcome"] == "goal"
+        # flying straight at the block crashes instead
+        _, info = run_actions(env, [3] * 10, seed=0)
+        assert info["outcome"] == "crash"
+    finally:
+        env.close()
+
+
+def test_thesis_solution_exits_the_window() -> None:
+    env = make_env(WORLDS / "window.yaml")
+    try:
+        _, info = run_actions(env, [5, 5, 5, 5, 3, 3, 3, 3, 3, 3], seed=0)
+        assert info["outcome"] == "goal"
+        assert info["position_enu_m"][1] > 4.5  # beyond the north wall
+        _, info = run_actions(env, [5, 5, 5, 3, 3, 3, 3, 3, 3], seed=0)  # too low: the wall
+        assert info["outcome"] == "crash"
+    finally:
+        env.close()
+
+
+def test_seeded_runs_are_identical() -> None:
+    actions = [6, 0, 5, 3, 7, 2, 4, 1]
+    runs = []
+    for _ in range(2):
+        env = make_env(WORLDS / "random_obstacle.yaml", seed=11)
+        try:
+            first, _ = run_actions(env, actions, seed=5)
+            second, _ = run_actions(env, actions)  # next episode, seed drawn from the env
+            runs.append(first + second)
+        finally:
+            env.close()
+    assert len(runs[0]) == len(runs[1])
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_hovering_until_the_step_limit_truncates() -> None:
+    env = make_env(WORLDS / "empty.yaml")
+    try:
+        env.reset(seed=0)
+        for step in range(1, env.scenario.task.max_steps + 1):
+            _, reward, terminated, truncated, info = env.step(7)
+            assert not terminated
+            assert truncated == (step == env.scenario.task.max_steps)
+        assert info["outcome"] == "timeout" and info["step"] == 20
+        assert info["sim_time_s"] >= 20.0
+    finally:
+        env.close()
+
+
+NEW_SCENARIO = """
+world:
+  name: tmp_corridor
+  description: A corridor test scenario written by a test, no code.
+  workspace: {min: [-3, -2, 0], max: [12, 2, 4]}
+  vehicles:
+    - name: scout
+      model: iris
+      spawn: {position: [0, 0, 0.06], yaw: 0, randomize: {position: [0.5, 0.5, 0]}}
+      goal: end
+  goals:
+    - {name: end, center: [8, 0, 1.5], size: [1.5, 1.5, 1.5]}
+  obstacles:
+    - {name: pillar, shape: cylinder, radius: 0.3, height: 4, position: [4, 1.5, 2]}
+task:
+  max_steps: 15
+  start_altitude_m: 1.5
+  action: {speed_m_s: 1.5, duration_s: 0.8, zero_velocity_s: 0.2, frame: goal}
+  observation:
+    - goal_offset
+    - velocity
+    - lidar: [horizontal]
+    - lidar_flags
+    - dummy: 3
+  reward:
+    closer_to_goal: {scale: 20, mode: binary}
+    goal_reached: 1000
+    per_step: -10
+    crash: -500
+    out_of_workspace: -200
+"""
+
+
+def test_a_new_scenario_file_runs_without_code(tmp_path: Path) -> None:
+    path = tmp_path / "corridor.yaml"
+    path.write_text(NEW_SCENARIO)
+    env = make_env(path, seed=3)
+    try:
+        assert env.observation_space.shape == (3 + 3 + 35 + 2 + 3,)
+        assert "`goal_offset`" in env.describe()
+        # frame: goal -> action 3 is "forward" = east here; 1.5 m/s for 0.8 s + 0.2 s hover
+        obs, info = env.reset()
+        outcomes = []
+        for _ in range(2):
+            _, info = run_actions(env, [3] * 15)
+            outcomes.append(info["outcome"])
+            assert set(info["reward_terms"]) == {"closer_to_goal", "goal_reached", "per_step",
+                                                 "crash", "out_of_workspace"}
+        assert outcomes == ["goal", "goal"]
+        assert info["sim_time_s"] < 20.0
+        # flying up leaves the 4 m high workspace
+        _, info = run_actions(env, [5] * 15)
+        assert info["outcome"] == "out"
+        assert info["reward_terms"]["out_of_workspace"] == -200.0
+    finally:
+        env.close()
+
+
+def test_single_env_in_a_two_drone_world_controls_one_drone() -> None:
+    env = make_env(WORLDS / "two_drones_empty.yaml", drone=1)
+    try:
+        _, start = env.reset(seed=0)
+        _, info = run_actions(env, [0, 0, 0], seed=0)
+        # drone 1 starts at the north end; with the thesis's swap its "east" flies west
+        assert start["position_enu_m"][1] > 9.0
+        assert info["position_enu_m"][0] < start["position_enu_m"][0] - 2.0
+    finally:
+        env.close()
+
+
+def test_bad_arguments_fail_clearly() -> None:
+    with pytest.raises(ValueError, match="autopilot must be one of direct, stub, px4"):
+        make_env(WORLDS / "empty.yaml", autopilot="gazebo")
+    with pytest.raises(ValueError, match="drone must be in 0..0"):
+        make_env(WORLDS / "empty.yaml", drone=1)
+    env = make_env(WORLDS / "empty.yaml")
+    try:
+        env.reset(seed=0)
+        with pytest.raises(ValueError, match="action must be"):
+            env.step(9)
+    finally:
+        env.close()
+
+
+def test_module_exports_the_documented_api() -> None:
+    for name in ("make_env", "make_parallel_env", "SitlEnv", "SitlParallelEnv", "load_scenario"):
+        assert hasattr(envs, name)
+    assert "## Action Space" in envs.SitlEnv.__doc__

@@ -1,0 +1,111 @@
+"""Lidar on real pybullet: known distances, max range on no hit, own body ignored, flags, filter."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sitl_bridge.physics import MotorCommand, Simulation
+from sitl_bridge.sensors.lidar import Lidar, LidarConfig, ray_directions_flu
+from sitl_bridge.world import load_world
+
+WORLDS = Path(__file__).resolve().parents[1] / "worlds"
+
+
+@pytest.fixture
+def obstacle_sim():
+    with Simulation(load_world(WORLDS / "obstacle.yaml")) as sim:
+        yield sim
+
+
+def test_default_layout_is_the_thesis_lidar():
+    config = LidarConfig()
+    h, u, d = ray_directions_flu(config)
+    assert (len(h), len(u), len(d), config.range_m) == (35, 6, 6, 5.0)
+    assert np.allclose(h[17], (1, 0, 0))            # middle ray looks forward
+    assert np.allclose(np.linalg.norm(np.vstack((h, u, d)), axis=1), 1.0)
+    assert np.all(u[:, 2] > 0.7) and np.all(d[:, 2] < -0.7)
+
+
+def test_reads_a_box_at_a_known_distance(obstacle_sim):
+    block = obstacle_sim.world.obstacles[0]
+    face_y = block.position_m[1] - block.shape.size_m[1] / 2   # south face of the block
+    obstacle_sim.place_vehicle(0, (0.0, face_y - 2.0, 1.5), yaw_enu_rad=math.pi / 2)  # facing north
+    scan = Lidar(obstacle_sim).scan()[0]
+    assert scan.horizontal_m[17] == pytest.approx(2.0, abs=0.01)
+    assert scan.down_m.min() == pytest.approx(1.5 / math.cos(math.radians(7.5)), abs=0.01)
+    assert scan.min_m == pytest.approx(2.0, abs=0.01) and not scan.near
+    # turn to face east: the block is now on the left (ray at +90 deg, counter-clockwise)
+    obstacle_sim.place_vehicle(0, (0.0, face_y - 2.0, 1.5), yaw_enu_rad=0.0)
+    h = Lidar(obstacle_sim).scan()[0].horizontal_m
+    angles = np.degrees(np.arctan2(*ray_directions_flu(LidarConfig())[0][:, 1::-1].T))
+    left = int(np.argmin(np.abs(angles - 90.0)))
+    assert h[left] == pytest.approx(2.0 / math.cos(math.radians(angles[left] - 90.0)), abs=0.01)
+
+
+def test_no_hit_is_max_range_never_inf_or_nan():
+    with Simulation(load_world(WORLDS / "empty.yaml")) as sim:
+        sim.place_vehicle(0, (0, 0, 3.0))
+        scan = Lidar(sim).scan()[0]
+        # the rays start inside the vehicle's own box and must not see it
+        assert np.all(scan.horizontal_m == 5.0) and np.all(scan.up_m == 5.0)
+        assert np.all(np.isfinite(scan.down_m)) and np.all(scan.down_m > 2.9)
+        sim.place_vehicle(0, (0, 0, 30.0))
+        far = Lidar(sim).scan()[0]
+        assert np.all(far.down_m == 5.0) and far.min_m == 5.0 and not far.near and not far.crash
+
+
+def test_near_and_crash_flags(obstacle_sim):
+    block = obstacle_sim.world.obstacles[0]
+    face_y = block.position_m[1] - block.shape.size_m[1] / 2
+    lidar = Lidar(obstacle_sim, LidarConfig(near_m=1.0, crash_m=0.4))
+    for distance, near, crash in ((1.5, False, False), (0.8, True, False), (0.3, True, True)):
+        obstacle_sim.place_vehicle(0, (0.0, face_y - distance, 1.5), yaw_enu_rad=math.pi / 2)
+        scan = lidar.scan()[0]
+        assert (scan.near, scan.crash) == (near, crash), distance
+    # the down rays do not raise flags by default (resting on the ground is no crash)
+    obstacle_sim.place_vehicle(0, (0, -2, 0.06))
+    assert not lidar.scan()[0].near
+
+
+def test_configurable_counts_and_fields_of_view(obstacle_sim):
+    config = LidarConfig(horizontal_rays=8, horizontal_fov_deg=90, up_rays=0, down_rays=3, down_fov_deg=0,
+                         range_m=10.0, flag_groups=("horizontal", "down"))
+    obstacle_sim.place_vehicle(0, (0, 0, 2.0), yaw_enu_rad=math.pi / 2)
+    scan = Lidar(obstacle_sim, config).scan()[0]
+    assert (len(scan.horizontal_m), len(scan.up_m), len(scan.down_m)) == (8, 0, 3)
+    assert np.allclose(scan.down_m, 2.0, atol=0.01) and scan.min_m == pytest.approx(2.0, abs=0.01)
+    assert np.all(scan.horizontal_m[3:5] < 10.0)  # the block ahead is within 10 m
+    assert np.all(scan.horizontal_m <= 10.0)
+
+
+def test_moving_average_filter(obstacle_sim):
+    block = obstacle_sim.world.obstacles[0]
+    face_y = block.position_m[1] - block.shape.size_m[1] / 2
+    lidar = Lidar(obstacle_sim, LidarConfig(filter_window=2))
+    obstacle_sim.place_vehicle(0, (0.0, face_y - 2.0, 1.5), yaw_enu_rad=math.pi / 2)
+    assert lidar.scan()[0].horizontal_m[17] == pytest.approx(2.0, abs=0.01)
+    obstacle_sim.place_vehicle(0, (0.0, face_y - 1.0, 1.5), yaw_enu_rad=math.pi / 2)
+    assert lidar.scan()[0].horizontal_m[17] == pytest.approx(1.5, abs=0.01)  # mean of 2.0 and 1.0
+    lidar.reset()
+    assert lidar.scan()[0].horizontal_m[17] == pytest.approx(1.0, abs=0.01)
+
+
+def test_two_vehicles_in_one_batch_see_each_other():
+    with Simulation(load_world(WORLDS / "two_drones_empty.yaml")) as sim:
+        sim.place_vehicle(0, (0, 0, 3.0), yaw_enu_rad=math.pi / 2)    # facing north
+        sim.place_vehicle(1, (0, 3.0, 3.0), yaw_enu_rad=-math.pi / 2)  # facing south, 3 m away
+        scans = Lidar(sim).scan()
+        half_width = 0.47 / 2
+        for scan in scans:
+            assert scan.horizontal_m[17] == pytest.approx(3.0 - half_width, abs=0.01)
+        sim.step([MotorCommand.disarmed()] * 2)
+        assert len(Lidar(sim).scan()) == 2
+
+
+def test_wrong_number_of_configs_is_an_error(obstacle_sim):
+    with pytest.raises(ValueError, match="expected 1 lidar configs"):
+        Lidar(obstacle_sim, [LidarConfig(), LidarConfig()])

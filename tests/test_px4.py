@@ -1,0 +1,236 @@
+"""Real PX4 process management: parameter overrides, environment, death reports, cleanup, and
+(with PX4_BIN set) a real PX4 SITL booting against the simulator, arming and hovering on its
+own controllers, then restarting for a new episode."""
+
+from __future__ import annotations
+
+import os
+import socket
+import stat
+import time
+from pathlib import Path
+
+import pytest
+from conftest import instance_ports_free
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink.dialects.v20 import common as mav  # noqa: E402
+
+from sitl_bridge.autopilot.px4 import (  # noqa: E402
+    Px4Autopilot,
+    Px4Config,
+    Px4Died,
+    Px4Fleet,
+    Px4Param,
+    load_param_overrides,
+    read_params,
+)
+from sitl_bridge.errors import ConfigError  # noqa: E402
+from sitl_bridge.hil import HilLink, Lockstep  # noqa: E402
+from sitl_bridge.physics.simulation import Simulation  # noqa: E402
+from sitl_bridge.sensors.suite import SensorSuite  # noqa: E402
+from sitl_bridge.world.loader import load_world  # noqa: E402
+
+WORLDS = Path(__file__).resolve().parents[1] / "worlds"
+
+
+# -- without PX4 ----------------------------------------------------------------------------
+def test_repo_params_parse_and_scale_with_speed_factor():
+    params = load_param_overrides()
+    assert params["COM_RC_IN_MODE"].value == 4 and not params["COM_RC_IN_MODE"].wall
+    timeout = params["COM_OF_LOSS_T"]
+    assert timeout.wall
+    assert timeout.resolved(1.0) == pytest.approx(1.0)
+    assert timeout.resolved(5.0) == pytest.approx(5.0)
+    assert timeout.resolved(0.5) == pytest.approx(0.5)
+    assert timeout.resolved(0.0) > 10  # "max" speed: generous, never 0 (the rcS bug)
+    assert params["COM_DL_LOSS_T"].resolved(100.0) == 300  # capped at PX4's maximum
+
+
+def test_bad_params_line_names_file_and_line(tmp_path):
+    path = tmp_path / "bad.params"
+    path.write_text("# comment\nCOM_OF_LOSS_T 1.0 wall\nCOM_RC_IN_MODE four\n")
+    with pytest.raises(ConfigError, match=r"bad.params: line 3"):
+        read_params(path)
+    path.write_text("lower_case 1\n")
+    with pytest.raises(ConfigError, match="parameter name"):
+        read_params(path)
+
+
+def test_environment_for_external_simulator(tmp_path):
+    params = {"COM_OF_LOSS_T": Px4Param("COM_OF_LOSS_T", 1.0, wall=True), "NAV_DLL_ACT": Px4Param("NAV_DLL_ACT", 0)}
+    config = Px4Config(px4_bin=Path("/bin/true"), run_dir=tmp_path, rootfs=tmp_path, speed_factor=3.0,
+                       home_lat_deg=47.5, home_lon_deg=8.5, home_alt_m=500.0, params=params)
+    env = Px4Autopilot(config, 7).environment()
+    assert env["PX4_SIM_MODEL"] == "gazebo-classic_iris"
+    assert env["PX4_SIM_SPEED_FACTOR"] == "3"
+    assert float(env["PX4_HOME_LAT"]) == 47.5 and float(env["PX4_HOME_ALT"]) == 500.0
+    assert env["PX4_PARAM_COM_OF_LOSS_T"] == "3" and env["PX4_PARAM_NAV_DLL_ACT"] == "0"
+    at_max = Px4Autopilot(Px4Config(px4_bin=Path("/bin/true"), run_dir=tmp_path, rootfs=tmp_path,
+                                    speed_factor=0.0, params=params), 7).environment()
+    assert "PX4_SIM_SPEED_FACTOR" not in at_max  # rcS would scale the timeouts to 0
+
+
+def _stand_in(tmp_path: Path, body: str) -> Path:
+    """An executable standing in for bin/px4 (process handling only, no protocol)."""
+    path = tmp_path / "px4"
+    path.write_text("#!/bin/sh\n" + body)
+    path.chmod(path.stat().st_mode | stat.S_IEXEC)
+    return path
+
+
+def test_death_is_reported_with_output_tail(tmp_path):
+    binary = _stand_in(tmp_path, 'echo "INFO  [px4] starting"\necho "ERROR [simulator] boom"\nexit 3\n')
+    config = Px4Config(px4_bin=binary, run_dir=tmp_path / "run", rootfs=tmp_path, params={})
+    autopilot = Px4Autopilot(config, 3)
+    autopilot.start()
+    try:
+        deadline = time.monotonic() + 5
+        while autopilot.alive and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with pytest.raises(Px4Died, match="boom") as died:
+            autopilot.check_alive()
+        assert died.value.returncode == 3
+        assert "boom" in autopilot.console_log.read_text()
+    finally:
+        autopilot.stop()
+
+
+def test_stop_leaves_no_process_behind(tmp_path):
+    # ignores SIGTERM like PX4 before its simulator connects, and has a child process
+    binary = _stand_in(tmp_path, "trap '' TERM\nsleep 300 &\necho $! > child.pid\nwait\n")
+    config = Px4Config(px4_bin=binary, run_dir=tmp_path / "run", rootfs=tmp_path, params={})
+    autopilot = Px4Autopilot(config, 4)
+    autopilot.start()
+    pid_file = autopilot.work_dir / "child.pid"
+    deadline = time.monotonic() + 5
+    while not pid_file.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    child = int(pid_file.read_text())
+    parent = autopilot.pid
+    autopilot.stop(timeout_s=0.5)
+    assert _gone(parent) and _gone(child)
+
+
+def _gone(pid: int) -> bool:
+    """No such process, or only a zombie waiting for init to reap it."""
+    deadline = time.monotonic() + 2
+    while time.monotonic() < deadline:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (FileNotFoundError, ProcessLookupError):
+            return True
+        if state == "Z":
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_console_log_is_capped(tmp_path):
+    binary = _stand_in(tmp_path, "i=0\nwhile [ $i -lt 3000 ]; do echo \"line $i padding padding padding\"; i=$((i+1)); done\n")
+    config = Px4Config(px4_bin=binary, run_dir=tmp_path / "run", rootfs=tmp_path, params={}, log_cap_bytes=20_000)
+    autopilot = Px4Autopilot(config, 5)
+    autopilot.start()
+    deadline = time.monotonic() + 10
+    while autopilot.alive and time.monotonic() < deadline:
+        time.sleep(0.01)
+    autopilot.stop()
+    logs = list(autopilot.work_dir.glob("console.log*"))
+    assert sum(p.stat().st_size for p in logs) <= 20_000
+    assert "line 2999" in autopilot.tail(1)
+
+
+# -- with a real PX4 -----------------------------------------------------------------------------
+def _px4_instance() -> int:
+    """PX4 sends its API traffic of instances >= 10 all to port 14549: stay below."""
+    for instance in range(9, 0, -1):
+        if instance_ports_free(instance) and not Path(f"/tmp/px4_lock-{instance}").exists():
+            return instance
+    pytest.skip("no free PX4 instance below 10")
+
+
+class ApiClient:
+    """pymavlink on PX4's API link (we bind 14540+i, PX4 sends from 14580+i)."""
+
+    def __init__(self, instance: int) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 14540 + instance))
+        self.sock.setblocking(False)
+        self.target = ("127.0.0.1", 14580 + instance)
+        self.system = instance + 1
+        self.codec = mav.MAVLink(None, srcSystem=245, srcComponent=190)
+        self.acks: dict[int, int] = {}
+        self.armed = False
+        self.relative_alt_m = 0.0
+
+    def command(self, command: int, *params: float) -> None:
+        p = list(params) + [0.0] * (7 - len(params))
+        message = mav.MAVLink_command_long_message(self.system, 1, command, 0, *p)
+        self.sock.sendto(message.pack(self.codec), self.target)
+
+    def poll(self) -> None:
+        while True:
+            try:
+                data = self.sock.recv(65536)
+            except BlockingIOError:
+                return
+            for message in self.codec.parse_buffer(data) or []:
+                kind = message.get_type()
+                if kind == "COMMAND_ACK":
+                    self.acks[message.command] = message.result
+                elif kind == "HEARTBEAT" and message.get_srcComponent() == 1:
+                    self.armed = bool(message.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+                elif kind == "GLOBAL_POSITION_INT":
+                    self.relative_alt_m = message.relative_alt / 1000.0
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.mark.px4
+@pytest.mark.timeout(240)
+def test_px4_boots_arms_hovers_and_restarts(px4_bin, tmp_path):
+    instance = _px4_instance()
+    world = load_world(WORLDS / "empty.yaml")
+    sim = Simulation(world)
+    sensors = [SensorSuite(world.home, seed=0)]
+    link = HilLink(instance)
+    api = ApiClient(instance)
+    config = Px4Config.create(px4_bin, tmp_path, speed_factor=0, home=world.home)
+    fleet = Px4Fleet(config, [instance])
+    lockstep = Lockstep(sim, sensors, [link], speed_factor=0, actuator_timeout_s=5.0)
+    try:
+        fleet.start()
+        fleet.connect([link], timeout_s=60)
+        fleet.wait_ready(lockstep, timeout_s=120)
+        observation = fleet.autopilots[0].observation
+        assert observation.prearm_ok and observation.home_ok and not observation.params_pending
+        assert link.actuators_flowing and link.stats.timeouts == 0
+
+        api.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        assert lockstep.run_until(lambda: (api.poll(), api.armed)[1], max_seconds=5)
+        api.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, float("nan"), float("nan"), float("nan"), float("nan"))
+        lockstep.run_for(12.0)  # PX4's own controllers climb to MIS_TAKEOFF_ALT (2.5 m)
+        heights = []
+        for _ in range(10):
+            lockstep.run_for(0.2)
+            api.poll()  # keep the UDP buffer drained: the last reading is a fresh one
+            heights.append(float(sim.state(0).position_enu_m[2]))
+        assert all(1.8 < h < 3.5 for h in heights), heights  # hovering, not falling or climbing
+        assert max(heights) - min(heights) < 0.3
+        api.poll()
+        assert api.armed and api.relative_alt_m > 1.5  # PX4's estimate agrees
+        assert lockstep.stats.timeouts == 0
+
+        # New episode: fresh PX4, simulation reset in place, ready again.
+        restart_s = fleet.restart(lockstep, reset=sim.reset)
+        assert restart_s < 60
+        assert float(sim.state(0).position_enu_m[2]) < 0.2
+        assert fleet.autopilots[0].starts == 2
+        print(f"PX4 restart-to-ready {restart_s:.2f} s wall, link {lockstep.stats.real_time_factor:.1f}x")
+    finally:
+        fleet.stop()
+        api.close()
+        link.close()
+        sim.close()
+    assert not fleet.autopilots[0].alive
