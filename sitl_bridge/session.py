@@ -31,12 +31,13 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -52,6 +53,9 @@ log = logging.getLogger(__name__)
 
 AUTOPILOTS = ("stub", "px4", "external")
 HIL_BASE_PORT = 4560
+API_CLIENT_BASE_PORT = 14540
+PX4_LAST_OWN_API_PORT_INSTANCE = 9
+"""PX4's px4-rc.mavlink sends the API link of every instance above 9 to 14549."""
 DEFAULT_WORLD = "empty"
 EXTRA_VEHICLE_SPACING_M = 3.0
 """`num_vehicles` beyond the world's: copies of its last vehicle, this far apart (east)."""
@@ -107,10 +111,18 @@ def with_vehicle_count(world: World, count: int) -> World:
     return replace(world, vehicles=tuple(vehicles))
 
 
-def _mode_name(custom_mode: int) -> str:
-    from sitl_bridge.autopilot.stub.commander import mode_name
+_MAIN_MODES = {1: "Manual", 2: "Altitude", 3: "Position", 4: "Auto", 5: "Acro", 6: "Offboard",
+               7: "Stabilized", 8: "Rattitude"}
+_AUTO_SUB_MODES = {1: "Ready", 2: "Takeoff", 3: "Hold", 4: "Mission", 5: "Return", 6: "Land",
+                   7: "ReturnToGroundStation", 8: "FollowTarget", 9: "Precland"}
 
-    return mode_name(custom_mode)
+
+def px4_mode_name(custom_mode: int) -> str:
+    """PX4 flight mode name of a HEARTBEAT custom_mode, as QGroundControl shows it."""
+    main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+    if main == 4:
+        return _AUTO_SUB_MODES.get(sub, f"Auto({sub})")
+    return _MAIN_MODES.get(main, f"mode {custom_mode}")
 
 
 class SimSession:
@@ -171,6 +183,11 @@ class SimSession:
         self.speed_factor = float(speed_factor)
         self.instance_base = instance_base
         self.instances = [instance_base + k for k in range(self.world.num_vehicles)]
+        if autopilot == "px4" and sum(i > PX4_LAST_OWN_API_PORT_INSTANCE for i in self.instances) > 1:
+            raise ConfigError(
+                f"instance_base: PX4 instances above {PX4_LAST_OWN_API_PORT_INSTANCE} all send their "
+                f"MAVLink API to UDP 14549; with several vehicles use instances 0..9, got "
+                f"{self.instances[0]}..{self.instances[-1]}")
         self.seed = seed
         self.gui = gui
         self.host = host
@@ -255,11 +272,14 @@ class SimSession:
 
     def _start_stub_processes(self) -> None:
         for instance in self.instances:
-            command = [sys.executable, "-m", "sitl_bridge", "stub", "-i", str(instance)]
+            # --once: a stub whose simulator vanished (we were killed) exits instead of waiting.
+            command = [sys.executable, "-m", "sitl_bridge", "stub", "-i", str(instance), "--once",
+                       "--host", self.host, "--speed-factor", repr(self.speed_factor)]
             if self.stub_ground_truth:
                 command.append("--ground-truth")
             for name, value in self.params.items():
-                command += ["--param", f"{name}={value:g}"]
+                command += ["--param", f"{name}={value!r}"]
+            # Own session: a terminal's Ctrl-C reaches us only; we stop the stubs in order.
             process = subprocess.Popen(command, stdin=subprocess.DEVNULL, start_new_session=True)
             self._processes.append(process)
         self._closers.append(self._stop_processes)
@@ -269,7 +289,9 @@ class SimSession:
 
         run_dir = self._run_dir
         if run_dir is None:
+            # Ours, so removed on close; pass run_dir to keep PX4's console logs.
             run_dir = Path(tempfile.mkdtemp(prefix="sitl-bridge-px4-"))
+            self._closers.append(lambda: shutil.rmtree(run_dir, ignore_errors=True))
         # px4 resolves px4_params/ itself (wall timeouts via env + read-back); only extras here.
         config = Px4Config.create(self._px4_bin, run_dir, rootfs=self._px4_rootfs,
                                   speed_factor=self.speed_factor, home=self.world.home,
@@ -303,8 +325,9 @@ class SimSession:
                 raise SessionError(f"vehicle {instance}: stub process exited with code {code}")
         if self.px4 is not None:
             self.px4.check_alive()
-        if self.runner is not None and self.runner.error is not None:
-            self.runner._raise_error()
+        error = self.runner.error if self.runner is not None else None
+        if error is not None:
+            raise SessionError(f"the simulation stopped: {error}") from error
 
     def _stop_processes(self) -> None:
         for process in self._processes:
@@ -390,6 +413,14 @@ class SimSession:
         """Stop at the next step boundary (returns once held)."""
         self._require_runner().hold()
 
+    @contextlib.contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """Held, with the runner thread off the lockstep (not even idling the pumps) inside the
+        block: the safe way to touch `sim`, `sensors` or `stubs` from another thread, e.g. an
+        in-place episode reset. In-process stubs do not answer MAVLink meanwhile."""
+        with self._require_runner().exclusive():
+            yield
+
     @property
     def real_time_factor(self) -> float:
         """Achieved simulated/wall time of the current running segment (or the last one)."""
@@ -399,6 +430,20 @@ class SimSession:
     def overall_real_time_factor(self) -> float:
         """Simulated/wall time over all running segments so far (holds excluded)."""
         return self.lockstep.stats.real_time_factor if self.lockstep is not None else 0.0
+
+    # -- MAVLink API ----------------------------------------------------------------------------
+    def api_client_port(self, vehicle: int) -> int:
+        """UDP port a MAVSDK client listens on for vehicle `vehicle` (index): 14540+i, except
+        real PX4 above instance 9, which sends to 14549 (px4-rc.mavlink)."""
+        instance = self.instances[vehicle]
+        if self.autopilot == "px4" and instance > PX4_LAST_OWN_API_PORT_INSTANCE:
+            return API_CLIENT_BASE_PORT + PX4_LAST_OWN_API_PORT_INSTANCE
+        return API_CLIENT_BASE_PORT + instance
+
+    @property
+    def api_urls(self) -> list[str]:
+        """MAVSDK connection URL of every vehicle (`udpin://127.0.0.1:<port>`)."""
+        return [f"udpin://{self.host}:{self.api_client_port(k)}" for k in range(self.num_vehicles)]
 
     # -- observation -------------------------------------------------------------------------
     def vehicle_state(self, vehicle: int) -> VehicleState:
@@ -412,10 +457,10 @@ class SimSession:
         in-process, else the armed flag of its HIL heartbeat/actuators (mode unknown: '-')."""
         if self.stubs:
             stub = self.stubs[vehicle]
-            return _mode_name(stub.custom_mode), bool(stub.armed)
+            return px4_mode_name(stub.custom_mode), bool(stub.armed)
         if self.px4 is not None:
             obs = self.px4.autopilots[vehicle].observation
-            return _mode_name(obs.custom_mode), bool(obs.armed)
+            return px4_mode_name(obs.custom_mode), bool(obs.armed)
         link = self.links[vehicle]
         armed = link.heartbeat.armed if link.heartbeat is not None else link.command.armed
         return "-", bool(armed)
@@ -443,17 +488,12 @@ def _apply_params(table: Any, values: Mapping[str, float]) -> None:
             table.add(name, value, kind)
 
 
-def open_session(*args: Any, **kwargs: Any) -> SimSession:
-    """`SimSession(...).start()` (for callers that manage the lifetime themselves)."""
-    return SimSession(*args, **kwargs).start()
-
-
 __all__: Sequence[str] = (
     "AUTOPILOTS",
     "SessionError",
     "SimSession",
     "default_world_path",
-    "open_session",
+    "px4_mode_name",
     "resolve_world",
     "with_vehicle_count",
 )

@@ -90,7 +90,7 @@ def test_thesis_solution_exits_the_window() -> None:
         _, info = run_actions(env, [5, 5, 5, 5, 3, 3, 3, 3, 3, 3], seed=0)
         assert info["outcome"] == "goal"
         assert info["position_enu_m"][1] > 4.5  # beyond the north wall
-        _, info = run_actions(env, [5, 5, 5, 3, 3, 3, 3, 3, 3], seed=0)  # too low: the wall
+        _, info = run_actions(env, [5, 5, 5, 3, 3, 3, 3, 3, 3], seed=0)  # one up too few: the wall
         assert info["outcome"] == "crash"
     finally:
         env.close()

@@ -89,3 +89,22 @@ def test_a_single_drone_scenario_works_as_a_parallel_env() -> None:
         assert infos["drone0"]["outcome"] == "goal"
     finally:
         env.close()
+
+
+def test_seeded_parallel_runs_are_identical() -> None:
+    runs = []
+    for _ in range(2):
+        env = make_parallel_env(WORLDS / "two_drones_window.yaml", seed=0)
+        try:
+            observations, _ = env.reset(seed=9)
+            seen = [observations]
+            for step in range(4):
+                observations, *_ = env.step({a: (step + k) % 8 for k, a in enumerate(env.agents)})
+                seen.append(observations)
+            runs.append(seen)
+        finally:
+            env.close()
+    for a, b in zip(*runs, strict=True):
+        assert a.keys() == b.keys()
+        for agent in a:
+            np.testing.assert_array_equal(a[agent], b[agent])

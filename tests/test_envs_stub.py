@@ -64,3 +64,20 @@ def test_stub_backend_flies_two_drones_head_on(free_instances) -> None:
         assert outcomes == {"drone0": "crash", "drone1": "crash"}
     finally:
         env.close()
+
+
+@pytest.mark.px4
+def test_px4_backend_flies_and_restarts_between_episodes(px4_bin: str, free_instance: int) -> None:
+    env = make_env(WORLDS / "empty.yaml", autopilot="px4", px4_bin=px4_bin, instance_base=free_instance)
+    try:
+        for seed in (0, 1):  # the second reset restarts PX4
+            _, info = env.reset(seed=seed)
+            assert abs(info["position_enu_m"][2] - 2.56) < 0.3
+            start = info["position_enu_m"]
+            for _ in range(3):
+                _, _, terminated, truncated, info = env.step(3)
+                assert not (terminated or truncated)
+            moved = info["position_enu_m"] - start
+            assert 2.0 < moved[1] < 3.5 and abs(moved[0]) < 0.3  # three times 1 m/s north
+    finally:
+        env.close()

@@ -156,3 +156,15 @@ def test_distance_from_line() -> None:
     assert distance_from_line(np.array([3.0, 5.0, 4.0]), a, b) == pytest.approx(5.0)
     assert distance_from_line(np.array([3.0, 4.0, 0.0]), a, a) == pytest.approx(5.0)
     assert math.isfinite(distance_from_line(np.array([1e9, 0, 0]), a, b))
+
+
+@pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: p.stem)
+def test_every_scenario_has_a_manual(path: Path) -> None:
+    from sitl_bridge.envs.manual import describe
+
+    scenario = load_scenario(path)
+    text = describe(scenario)
+    assert f"# {scenario.name}" in text
+    for feature in scenario.task.observation:
+        assert f"`{feature.name}`" in text
+    assert f"after {scenario.task.max_steps} steps" in text

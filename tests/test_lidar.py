@@ -109,3 +109,20 @@ def test_two_vehicles_in_one_batch_see_each_other():
 def test_wrong_number_of_configs_is_an_error(obstacle_sim):
     with pytest.raises(ValueError, match="expected 1 lidar configs"):
         Lidar(obstacle_sim, [LidarConfig(), LidarConfig()])
+
+
+def test_mesh_obstacle_is_loaded_and_seen(tmp_path):
+    # a 2 m cube as a Wavefront OBJ next to the world file
+    corners = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    faces = [(1, 3, 4, 2), (5, 6, 8, 7), (1, 2, 6, 5), (3, 7, 8, 4), (1, 5, 7, 3), (2, 4, 8, 6)]
+    obj = "".join(f"v {x} {y} {z}\n" for x, y, z in corners)
+    obj += "".join(f"f {a} {b} {c}\nf {a} {c} {d}\n" for a, b, c, d in faces)
+    (tmp_path / "cube.obj").write_text(obj)
+    (tmp_path / "mesh.yaml").write_text(
+        "world:\n  name: mesh\n  workspace: {min: [-10, -10, 0], max: [10, 10, 5]}\n"
+        "  vehicles: [{name: d, spawn: {position: [0, 0, 1.0], yaw: 90}}]\n"
+        "  obstacles: [{name: cube, shape: mesh, file: cube.obj, size: [2, 2, 2], position: [0, 4, 1]}]\n")
+    world = load_world(tmp_path / "mesh.yaml")
+    assert world.obstacles[0].shape.mesh_file == str(tmp_path / "cube.obj")
+    with Simulation(world) as sim:
+        assert Lidar(sim).scan()[0].horizontal_m[17] == pytest.approx(3.0, abs=0.01)

@@ -151,25 +151,31 @@ def test_two_vehicles_share_one_clock(free_instances):
         lockstep.run_for(0.2)  # boot: actuators start flowing
         for peer in peers:
             peer.sensor_times.clear()
+        stale_before = [link.stats.stale_actuator_msgs for link in links]
         lockstep.run_for(0.4)
         times0, times1 = peers[0].sensor_times, peers[1].sensor_times
         assert len(times0) == len(times1) == 100
         assert times0 == times1
         assert all(b - a == STEP_US for a, b in zip(times0, times0[1:], strict=False))
         assert lockstep.stats.wait_s > 0.1  # it really waited for the slow one
-        assert all(link.stats.stale_actuator_msgs == 0 for link in links[:1])
+        # in lockstep every answer matches the step just sent: none arrives late
+        assert [link.stats.stale_actuator_msgs for link in links] == stale_before
     finally:
         close_rig(sim, links, peers)
 
 
-@pytest.mark.parametrize("factor, sim_seconds", [(1.0, 1.5), (5.0, 6.0)])
+@pytest.mark.parametrize("factor, sim_seconds", [(0.5, 0.6), (1.0, 1.5), (5.0, 6.0)])
 def test_speed_factor_is_honoured(free_instance, factor, sim_seconds):
     sim, links, peers, lockstep = make_rig(
         free_instance, 1, lambda port, i: Peer(port), speed_factor=factor
     )
     lockstep.pumps.append(peers[0].pump)
     try:
-        lockstep.run_for(0.04)
+        lockstep.speed_factor = 0
+        lockstep.run_for(0.4)
+        if lockstep.real_time_factor < 2 * factor:
+            pytest.skip(f"machine too loaded to pace at {factor}x (flat out: {lockstep.real_time_factor:.1f}x)")
+        lockstep.speed_factor = factor
         start = time.monotonic()
         lockstep.run_for(sim_seconds)
         wall = time.monotonic() - start

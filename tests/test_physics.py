@@ -200,6 +200,7 @@ def trace(sim: Simulation, steps: int) -> list[tuple]:
 def test_same_seed_same_trajectory_and_layout():
     assert run_trace("random_obstacle", 7) == run_trace("random_obstacle", 7)
     assert run_trace("two_drones_window", 1) == run_trace("two_drones_window", 1)
+    assert run_trace("street", 2, steps=600) == run_trace("street", 2, steps=600)  # movers, contacts
 
 
 def test_reset_restarts_exactly_like_a_new_simulation():
@@ -213,3 +214,46 @@ def test_reset_restarts_exactly_like_a_new_simulation():
         assert trace(sim, 300) == trace(fresh, 300)
         sim.reset()  # no seed: next layout from the same stream, still deterministic
         assert sim.layout != fresh.layout
+
+
+def collision_log(world_name: str, exhaustive: bool, steps: int = 1500) -> list:
+    with Simulation(load_world(WORLDS / f"{world_name}.yaml"), seed=1) as sim:
+        if exhaustive:
+            sim._may_touch = lambda *args: True  # always ask pybullet for contacts
+        for i in range(sim.num_vehicles):
+            sim.place_vehicle(i, (0.0, sim.pose(i)[0][1], 2.0), yaw_enu_rad=0.0)
+        log = []
+        for k in range(steps):
+            # tilt east, then cut the motors: fly into walls, each other, the ground
+            u = (HOVER - 0.03, HOVER + 0.03, HOVER - 0.03, HOVER + 0.03) if k < 400 else (0, 0, 0, 0)
+            sim.step([MotorCommand(u, k < 400)] * sim.num_vehicles)
+            log += [(c.vehicle, c.kind, c.other, c.time_us) for c in sim.collisions()]
+            log += [("ground", i, sim.state(i).on_ground) for i in range(sim.num_vehicles)]
+        return log
+
+
+@pytest.mark.parametrize("world_name", ["two_drones_window", "street", "two_drones_empty"])
+def test_contact_prefilter_misses_nothing(world_name):
+    fast = collision_log(world_name, exhaustive=False)
+    assert any(entry[1] in ("obstacle", "ground", "vehicle") for entry in fast if len(entry) == 4)
+    assert fast == collision_log(world_name, exhaustive=True)
+
+
+@pytest.mark.parametrize("world_name", ["empty", "two_drones_window", "street"])
+def test_vehicles_spawned_on_the_ground_start_at_rest(world_name):
+    # no touchdown spike in the first frames (PX4's preflight checks would see it)
+    with Simulation(load_world(WORLDS / f"{world_name}.yaml"), seed=1) as sim:
+        for _ in range(50):
+            sim.step([MotorCommand.disarmed()] * sim.num_vehicles)
+            for i in range(sim.num_vehicles):
+                state = sim.state(i)
+                assert np.allclose(state.specific_force_frd_m_s2, (0, 0, -sim.gravity_m_s2), atol=0.05)
+                assert state.on_ground and sim.collisions() == []
+
+
+def test_out_of_range_and_nan_inputs_are_clamped(empty_sim):
+    empty_sim.place_vehicle(0, (0, 0, 5.0))
+    fly(empty_sim, (float("nan"), -3.0, 7.0, 1.0), 0.5)
+    speeds = empty_sim.state(0).rotor_speeds_rad_s
+    assert np.allclose(speeds, (100, 100, 1100, 1100), rtol=1e-3)
+    assert np.all(np.isfinite(empty_sim.state(0).position_enu_m))

@@ -5,8 +5,11 @@ own controllers, then restarting for a new episode."""
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import stat
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -23,10 +26,11 @@ from sitl_bridge.autopilot.px4 import (  # noqa: E402
     Px4Fleet,
     Px4Param,
     load_param_overrides,
+    px4_server_running,
     read_params,
 )
 from sitl_bridge.errors import ConfigError  # noqa: E402
-from sitl_bridge.hil import HilLink, Lockstep  # noqa: E402
+from sitl_bridge.hil import HilError, HilLink, Lockstep  # noqa: E402
 from sitl_bridge.physics.simulation import Simulation  # noqa: E402
 from sitl_bridge.sensors.suite import SensorSuite  # noqa: E402
 from sitl_bridge.world.loader import load_world  # noqa: E402
@@ -55,6 +59,8 @@ def test_bad_params_line_names_file_and_line(tmp_path):
     path.write_text("lower_case 1\n")
     with pytest.raises(ConfigError, match="parameter name"):
         read_params(path)
+    with pytest.raises(ConfigError, match="no \\*.params files"):
+        load_param_overrides(tmp_path / "missing")
 
 
 def test_environment_for_external_simulator(tmp_path):
@@ -144,7 +150,7 @@ def test_console_log_is_capped(tmp_path):
 def _px4_instance() -> int:
     """PX4 sends its API traffic of instances >= 10 all to port 14549: stay below."""
     for instance in range(9, 0, -1):
-        if instance_ports_free(instance) and not Path(f"/tmp/px4_lock-{instance}").exists():
+        if instance_ports_free(instance) and not px4_server_running(instance):
             return instance
     pytest.skip("no free PX4 instance below 10")
 
@@ -204,7 +210,7 @@ def test_px4_boots_arms_hovers_and_restarts(px4_bin, tmp_path):
         fleet.connect([link], timeout_s=60)
         fleet.wait_ready(lockstep, timeout_s=120)
         observation = fleet.autopilots[0].observation
-        assert observation.prearm_ok and observation.home_ok and not observation.params_pending
+        assert observation.ready and observation.home_ok and not observation.params_pending
         assert link.actuators_flowing and link.stats.timeouts == 0
 
         api.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
@@ -222,15 +228,60 @@ def test_px4_boots_arms_hovers_and_restarts(px4_bin, tmp_path):
         assert api.armed and api.relative_alt_m > 1.5  # PX4's estimate agrees
         assert lockstep.stats.timeouts == 0
 
-        # New episode: fresh PX4, simulation reset in place, ready again.
-        restart_s = fleet.restart(lockstep, reset=sim.reset)
+        # Episode reset keeping PX4: force-disarmed, teleported home; its estimate follows.
+        in_place_s = fleet.reset_in_place(lockstep)
+        assert float(sim.state(0).position_enu_m[2]) < 0.2
+        assert fleet.estimate_error_m(lockstep, 0) <= 0.3
+        assert fleet.autopilots[0].starts == 1
+
+        # New episode with a fresh PX4 and simulation: ready again.
+        restart_s = fleet.restart(lockstep)
         assert restart_s < 60
         assert float(sim.state(0).position_enu_m[2]) < 0.2
         assert fleet.autopilots[0].starts == 2
-        print(f"PX4 restart-to-ready {restart_s:.2f} s wall, link {lockstep.stats.real_time_factor:.1f}x")
+        assert lockstep.stats.timeouts == 0
+        print(f"PX4 in-place reset {in_place_s:.2f} s, restart-to-ready {restart_s:.2f} s wall, "
+              f"link {lockstep.stats.real_time_factor:.1f}x")
+
+        # PX4 crashing mid-run is reported with its last output.
+        os.kill(fleet.autopilots[0].pid, signal.SIGKILL)
+        with pytest.raises(HilError) as failure:
+            lockstep.run_for(2.0)
+        explained = fleet.explain(failure.value)
+        assert isinstance(explained, Px4Died) and explained.returncode == -signal.SIGKILL
+        assert "Ready for takeoff" in explained.tail
     finally:
         fleet.stop()
         api.close()
         link.close()
         sim.close()
     assert not fleet.autopilots[0].alive
+
+
+_OWNER = """
+import sys, time
+from pathlib import Path
+from sitl_bridge.autopilot.px4 import Px4Autopilot, Px4Config
+config = Px4Config(px4_bin=Path(sys.argv[1]), run_dir=Path(sys.argv[2]), rootfs=Path(sys.argv[2]), params={})
+autopilot = Px4Autopilot(config, 6)
+autopilot.start()
+print(autopilot.pid, flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGINT])
+def test_no_orphan_when_the_owner_crashes_or_is_interrupted(tmp_path, how):
+    binary = _stand_in(tmp_path, "trap '' TERM\nwhile true; do sleep 0.05; done\n")
+    owner = subprocess.Popen([sys.executable, "-c", _OWNER, str(binary), str(tmp_path / "run")],
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        pid = int(owner.stdout.readline())
+        assert not _gone(pid)
+        owner.send_signal(how)  # SIGKILL: no cleanup code runs; SIGINT: Ctrl-C
+        owner.wait(10)
+        assert _gone(pid)
+    finally:
+        owner.kill()
+        owner.wait()
+        owner.stdout.close()

@@ -177,3 +177,22 @@ def test_reset_restarts_the_noise_stream():
         suite.reset()
         again = [suite.sample(sim.state(0), t).accel_frd_m_s2.tolist() for t in range(0, 40000, 4000)]
     assert first == again
+
+
+def test_hand_built_state_and_truth_behave_like_generated_ones():
+    from sitl_bridge.physics import VehicleState
+    from sitl_bridge.sensors import GroundTruth
+
+    state = VehicleState(position_enu_m=np.array([1.0, 2.0, 3.0]), quaternion_enu_flu=(1, 0, 0, 0),
+                         velocity_enu_m_s=[0, 1, 0], angular_velocity_flu_rad_s=(0, 0, 0.5),
+                         specific_force_flu_m_s2=(0, 0, 9.8066), rotor_speeds_rad_s=(800,) * 4)
+    assert state.position_ned_m.tolist() == [2.0, 1.0, -3.0]
+    assert state.velocity_ned_m_s.tolist() == [1.0, 0.0, 0.0]
+    assert state.angular_velocity_frd_rad_s.tolist() == [0.0, 0.0, -0.5]
+    assert not state.position_enu_m.flags.writeable  # immutable like a frozen dataclass
+    frame = SensorSuite(HOME, seed=0).sample(state, 0)
+    assert np.allclose(frame.truth.position_ned_m, (2, 1, -3))
+    assert frame.truth.alt_mm == 491_000
+    truth = GroundTruth((1, 0, 0, 0), (0, 0, 0), 1, 2, 3, (0, 0, 0), (0, 0, 0), (4, 5, 6))
+    assert (truth.lat_e7, truth.lon_e7, truth.alt_mm) == (1, 2, 3)
+    assert truth.position_ned_m.tolist() == [4, 5, 6]

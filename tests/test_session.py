@@ -17,6 +17,7 @@ from sitl_bridge.hil.peer import ConstantAutopilot
 from sitl_bridge.session import (
     SimSession,
     default_world_path,
+    px4_mode_name,
     resolve_world,
     with_vehicle_count,
 )
@@ -160,3 +161,11 @@ def test_bad_arguments_are_config_errors() -> None:
         SimSession("empty", autopilot="ardupilot")
     with pytest.raises(ConfigError, match="speed_factor"):
         SimSession("empty", speed_factor=-1)
+
+
+@pytest.mark.parametrize(("custom_mode", "name"), [
+    (50593792, "Hold"), (393216, "Offboard"), (100925440, "Land"), (33816576, "Takeoff"),
+    (84148224, "Return"), (196608, "Position"), (17039360, "Ready"),
+])
+def test_px4_mode_names(custom_mode: int, name: str) -> None:
+    assert px4_mode_name(custom_mode) == name

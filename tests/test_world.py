@@ -192,3 +192,19 @@ def test_same_seed_same_layout():
     a = realize(world, np.random.default_rng(11))
     b = realize(world, np.random.default_rng(11))
     assert a == b
+
+
+def test_spawn_randomisation_stays_in_its_ranges(tmp_path):
+    def edit(data):
+        data["world"]["vehicles"][0]["spawn"]["randomize"] = {"position": [1.0, 0.5, 0.0], "yaw": 20}
+
+    world = load_world(broken_copy(tmp_path, edit, name="empty.yaml"))
+    spawn = world.vehicles[0].spawn
+    rng = np.random.default_rng(0)
+    layouts = [realize(world, rng) for _ in range(50)]
+    positions = np.array([lay.spawn_positions_m[0] for lay in layouts])
+    yaws = np.array([lay.spawn_yaws_rad[0] for lay in layouts])
+    assert np.all(np.abs(positions - spawn.position_m) <= (1.0, 0.5, 0.0))
+    assert positions[:, 0].std() > 0.2 and np.all(positions[:, 2] == spawn.position_m[2])
+    assert np.all(np.abs(yaws - spawn.yaw_rad) <= math.radians(20)) and yaws.std() > 0.05
+    assert "randomised: spawn" in world.summary()

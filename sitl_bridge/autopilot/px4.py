@@ -34,7 +34,9 @@ import atexit
 import collections
 import contextlib
 import ctypes
+import fcntl
 import logging
+import math
 import os
 import re
 import shutil
@@ -52,6 +54,7 @@ from typing import Any
 
 from sitl_bridge import mavlink
 from sitl_bridge.errors import ConfigError
+from sitl_bridge.hil.errors import HilError
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +109,24 @@ def find_rootfs(px4_bin: Path, rootfs: str | os.PathLike[str] | None = None) -> 
             return candidate
     where = ", ".join(str(c) for c in candidates)
     raise Px4Error(f"PX4 ROMFS not found (no init.d-posix/rcS in {where}); pass --px4-rootfs")
+
+
+def px4_server_running(instance: int) -> bool:
+    """True when a PX4 server runs as instance `instance`: PX4 holds a POSIX record lock on
+    /tmp/px4_lock-N while it runs (a file left by a killed PX4 is not locked)."""
+    try:
+        fd = os.open(f"/tmp/px4_lock-{instance}", os.O_RDWR)
+    except OSError:
+        return False
+    try:
+        fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    else:
+        fcntl.lockf(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
 
 
 # -- parameters ---------------------------------------------------------------------------------
@@ -167,8 +188,12 @@ def load_param_overrides(
 ) -> dict[str, Px4Param]:
     """All overrides of `params_dir/*.params` (name order, later wins) plus `extra`."""
     directory = Path(params_dir) if params_dir else PARAMS_DIR
+    files = sorted(directory.glob("*.params"))
+    if not files:
+        # Never start PX4 silently without its offboard/failsafe overrides.
+        raise ConfigError(f"{directory}: no *.params files (PX4 parameter overrides) found")
     merged: dict[str, Px4Param] = {}
-    for path in sorted(directory.glob("*.params")):
+    for path in files:
         for param in read_params(path):
             merged[param.name] = param
     for name, value in (extra or {}).items():
@@ -286,6 +311,9 @@ class Px4Observation:
     home_ok: bool = False
     ready_for_takeoff_line: bool = False
     params_pending: tuple[str, ...] = ()  # `wall` parameters not yet confirmed
+    position_ned_m: tuple[float, float, float] | None = None  # PX4's estimate (LOCAL_POSITION_NED)
+    velocity_ned_m_s: tuple[float, float, float] | None = None
+    acks: dict[int, int] = field(default_factory=dict)  # command -> MAV_RESULT
 
     @property
     def ready(self) -> bool:
@@ -382,8 +410,21 @@ class _GcsObserver:
                     obs.prearm_ok = bool(msg.onboard_control_sensors_health & MAV_SYS_STATUS_PREARM_CHECK)
                 elif msgid == mavlink.dialect.MAVLINK_MSG_ID_HOME_POSITION:
                     obs.home_ok = True
+                elif msgid == mavlink.dialect.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+                    _t, x, y, z, vx, vy, vz = mavlink.unpack_payload(frame)
+                    obs.position_ned_m = (x, y, z)
+                    obs.velocity_ned_m_s = (vx, vy, vz)
+                elif msgid == mavlink.dialect.MAVLINK_MSG_ID_COMMAND_ACK:
+                    msg = mavlink.decode_frame(self._codec, frame)
+                    obs.acks[msg.command] = msg.result
                 elif msgid == mavlink.dialect.MAVLINK_MSG_ID_PARAM_VALUE:
                     self._param_value(mavlink.decode_frame(self._codec, frame), obs)
+
+    def command(self, command: int, *params: float) -> None:
+        """Send COMMAND_LONG to the autopilot (as a GCS would)."""
+        values = [float(p) for p in params] + [0.0] * (7 - len(params))
+        self._send(mavlink.dialect.MAVLink_command_long_message(
+            self.target_system, 1, command, 0, *values))
 
     def close(self) -> None:
         with contextlib.suppress(OSError):
@@ -417,7 +458,11 @@ def _die_with_parent() -> None:
 
 
 class Px4Autopilot:
-    """One PX4 SITL process for vehicle `instance` (see module docstring)."""
+    """One PX4 SITL process for vehicle `instance` (see module docstring).
+
+    Start it from a thread that lives as long as PX4 should (normally the main thread): the
+    parent-death signal fires when the starting thread ends.
+    """
 
     def __init__(self, config: Px4Config, instance: int) -> None:
         if not 0 <= instance <= 254:
@@ -466,6 +511,8 @@ class Px4Autopilot:
         once sensor messages flow)."""
         if self.alive:
             raise Px4Error(f"PX4 instance {self.instance} is already running")
+        if px4_server_running(self.instance):
+            raise Px4Error(f"another PX4 already runs as instance {self.instance} (/tmp/px4_lock-{self.instance})")
         self._prepare_work_dir()
         wall = {n: p.resolved(self.config.speed_factor) for n, p in self.config.params.items() if p.wall}
         self.observation = Px4Observation(params_pending=tuple(wall))
@@ -488,7 +535,7 @@ class Px4Autopilot:
         self._console = _Console(self._process.stdout, self.console_log, self.config.log_cap_bytes)
         self._observer = _GcsObserver(self.instance, "127.0.0.1", wall)
 
-    def stop(self, timeout_s: float = 5.0) -> None:
+    def stop(self, timeout_s: float = 3.0) -> None:
         """Stop PX4 and everything it started: SIGTERM to its process group, SIGKILL after
         `timeout_s` (PX4 ignores SIGTERM until its simulator connected). Idempotent."""
         process = self._process
@@ -572,6 +619,14 @@ class Px4Autopilot:
         """PX4 observed ready (see `Px4Observation.ready`); the link is the caller's."""
         return self.poll().ready
 
+    def command(self, command: int, *params: float) -> None:
+        """Send a MAVLink COMMAND_LONG over the GCS link (answer in `observation.acks`;
+        PX4 only acts on it while simulated time advances)."""
+        if self._observer is None:
+            raise Px4Error(f"PX4 instance {self.instance} is not running")
+        self.observation.acks.pop(command, None)
+        self._observer.command(command, *params)
+
 
 def prune_logs(run_dir: Path, cap_bytes: int) -> None:
     """Delete the oldest PX4 ULog files under `run_dir/px4/*/log` beyond `cap_bytes` total."""
@@ -599,6 +654,8 @@ class Px4Fleet:
     def __init__(self, config: Px4Config, instances: Sequence[int]) -> None:
         self.autopilots = [Px4Autopilot(config, instance) for instance in instances]
         self.last_ready_wall_s = 0.0
+        # true NED position minus PX4's local estimate, when each became ready
+        self._origin_offsets: list[tuple[float, float, float] | None] = [None] * len(self.autopilots)
 
     def start(self) -> None:
         for autopilot in self.autopilots:
@@ -611,6 +668,22 @@ class Px4Fleet:
     def check_alive(self) -> None:
         for autopilot in self.autopilots:
             autopilot.check_alive()
+
+    def explain(self, error: BaseException, wait_s: float = 2.0) -> BaseException:
+        """Turn a link failure (LinkClosed, LockstepTimeout) into `Px4Died` with the console
+        tail when a PX4 process is what died (waiting up to `wait_s` for it to exit);
+        otherwise return `error` unchanged. Use as `raise fleet.explain(exc) from exc`."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            for autopilot in self.autopilots:
+                if autopilot.returncode is not None:
+                    try:
+                        autopilot.check_alive()
+                    except Px4Died as died:
+                        return died
+            if time.monotonic() > deadline:
+                return error
+            time.sleep(0.02)
 
     def connect(self, links: Sequence[Any], timeout_s: float = 30.0) -> None:
         """Wait until every PX4 connected to its link (checking that none died)."""
@@ -637,24 +710,88 @@ class Px4Fleet:
                     f"--- PX4 instance {a.instance} ({a.observation}):\n{a.tail(15)}" for a in self.autopilots
                 )
                 raise Px4Error(f"PX4 not ready after {timeout_s} s wall:\n{tails}")
-            return all(a.ready for a in self.autopilots)
+            return all(a.ready and a.observation.position_ned_m is not None for a in self.autopilots)
 
-        if not lockstep.run_until(all_ready, max_seconds=max_sim_s, check_every_s=0.2):
+        try:
+            ready = lockstep.run_until(all_ready, max_seconds=max_sim_s, check_every_s=0.2)
+        except HilError as exc:
+            raise self.explain(exc) from exc
+        if not ready:
             raise Px4Error(f"PX4 not ready after {max_sim_s} s of simulated time")
+        for index, autopilot in enumerate(self.autopilots):
+            self._origin_offsets[index] = self._offset(lockstep, index, autopilot.observation)
         self.last_ready_wall_s = time.monotonic() - start
         return self.last_ready_wall_s
 
+    @staticmethod
+    def _offset(lockstep: Any, index: int, obs: Px4Observation) -> tuple[float, float, float]:
+        true = lockstep.sim.state(index).position_ned_m
+        estimate = obs.position_ned_m or (0.0, 0.0, 0.0)
+        return (float(true[0]) - estimate[0], float(true[1]) - estimate[1], float(true[2]) - estimate[2])
+
+    def estimate_error_m(self, lockstep: Any, index: int) -> float:
+        """Distance between PX4's position estimate and the truth (in PX4's local frame)."""
+        obs = self.autopilots[index].observation
+        origin = self._origin_offsets[index]
+        if obs.position_ned_m is None or origin is None:
+            return float("inf")
+        offset = self._offset(lockstep, index, obs)
+        return math.dist(offset, origin)
+
+    def reset_in_place(self, lockstep: Any, reset: Callable[[], None] | None = None, *,
+                       tolerance_m: float = 0.3,
+                       timeout_s: float = 120.0, max_sim_s: float = 120.0) -> float:
+        """The alternative to `restart`: keep PX4 running, force-disarm it, `reset()` the
+        simulation (default `lockstep.reset_simulation()`: the vehicle jumps back to its spawn) and run until PX4's estimate has
+        followed (within `tolerance_m`, nearly at rest) and its pre-arm checks pass again.
+        Returns the wall seconds. PX4's clock keeps running forward (the link makes wire time
+        monotonic across the reset)."""
+        start = time.monotonic()
+        deadline = start + timeout_s
+        disarm = mavlink.dialect.MAV_CMD_COMPONENT_ARM_DISARM
+        for autopilot in self.autopilots:
+            autopilot.command(disarm, 0, 21196)  # 21196: force, even in the air
+
+        def disarmed() -> bool:
+            self.check_alive()
+            return all(not a.poll().armed for a in self.autopilots)
+
+        if not lockstep.run_until(disarmed, max_seconds=10.0, check_every_s=0.02):
+            raise Px4Error("PX4 did not disarm for the in-place reset")
+        (reset or lockstep.reset_simulation)()
+        for autopilot in self.autopilots:
+            autopilot.observation.prearm_ok = False
+            autopilot.observation.position_ned_m = None
+
+        def converged() -> bool:
+            self.check_alive()
+            if time.monotonic() > deadline:
+                raise Px4Error(f"PX4 estimate did not follow the in-place reset within {timeout_s} s")
+            for index, autopilot in enumerate(self.autopilots):
+                obs = autopilot.poll()
+                if not obs.prearm_ok or obs.velocity_ned_m_s is None:
+                    return False
+                if self.estimate_error_m(lockstep, index) > tolerance_m:
+                    return False
+                if math.hypot(*obs.velocity_ned_m_s) > 0.2:
+                    return False
+            return True
+
+        if not lockstep.run_until(converged, max_seconds=max_sim_s, check_every_s=0.1):
+            raise Px4Error(f"PX4 estimate did not follow the in-place reset in {max_sim_s} s simulated")
+        return time.monotonic() - start
+
     def restart(self, lockstep: Any, reset: Callable[[], None] | None = None, *,
                 connect_timeout_s: float = 30.0, ready_timeout_s: float = 120.0) -> float:
-        """Episode restart: hold, stop every PX4, drop the links, `reset()` the simulation,
-        start PX4 again, reconnect and wait until ready. Returns restart-to-ready wall s."""
+        """Episode restart: hold, stop every PX4, drop the links, `reset()` the simulation
+        (default: `lockstep.reset_simulation()`, physics and sensors), start PX4 again,
+        reconnect and wait until ready. Returns restart-to-ready wall seconds."""
         start = time.monotonic()
         lockstep.hold()
         self.stop()
         for link in lockstep.links:
             link.disconnect()
-        if reset is not None:
-            reset()
+        (reset or lockstep.reset_simulation)()
         self.start()
         self.connect(lockstep.links, connect_timeout_s)
         self.wait_ready(lockstep, timeout_s=ready_timeout_s)

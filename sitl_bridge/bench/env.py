@@ -5,7 +5,8 @@ seeded random policy for `--seconds` of simulated time per backend (`direct`, th
 free vehicle instances), resetting whenever an episode ends, and prints:
 
 * steps/s: env steps per wall second (each step = 1 s of simulated flight by default);
-* real-time factor: simulated seconds flown in steps per wall second spent in `step()`;
+* real-time factor: simulated seconds flown in steps per wall second spent in `step()`, and
+  per CPU second of this process (all its threads; less sensitive to a busy machine);
 * reset: wall seconds per `reset()` (mean and max), the in-place episode start included.
 """
 
@@ -32,6 +33,7 @@ class EnvFigures:
     backend: str
     steps: int
     step_wall_s: float
+    step_cpu_s: float
     sim_s: float
     resets: list[float]
 
@@ -43,15 +45,21 @@ class EnvFigures:
     def real_time_factor(self) -> float:
         return self.sim_s / self.step_wall_s if self.step_wall_s > 0 else 0.0
 
+    @property
+    def real_time_factor_cpu(self) -> float:
+        return self.sim_s / self.step_cpu_s if self.step_cpu_s > 0 else 0.0
+
     def line(self) -> str:
         return (f"{self.backend:>7}: {self.steps_per_s:7.1f} env steps/s, real-time factor "
-                f"{self.real_time_factor:6.1f}x, reset {np.mean(self.resets):.3f} s mean / "
+                f"{self.real_time_factor:6.1f}x wall ({self.real_time_factor_cpu:.1f}x per CPU s), "
+                f"reset {np.mean(self.resets):.3f} s mean / "
                 f"{np.max(self.resets):.3f} s max ({len(self.resets)} resets, {self.steps} steps)")
 
 
 def _free_instance() -> int:
-    """A vehicle instance whose HIL TCP port (4560+i) and API ports are free."""
-    for instance in range(200, 2000, 7):
+    """A vehicle instance whose HIL TCP port (4560+i) and API ports are free (MAVLink system
+    id 1+i must fit in a byte)."""
+    for instance in range(150, 250, 3):
         ok = True
         for port, kind in ((4560 + instance, socket.SOCK_STREAM), (14580 + instance, socket.SOCK_DGRAM),
                            (14540 + instance, socket.SOCK_DGRAM), (18570 + instance, socket.SOCK_DGRAM)):
@@ -72,13 +80,14 @@ def measure(backend: str, scenario: Path, seconds: float, seed: int = 0) -> EnvF
     env = make_env(scenario, autopilot=backend, speed_factor=0.0, seed=seed, instance_base=instance)
     rng = np.random.default_rng(seed)
     step_s = env.scenario.task.action.step_s
-    figures = EnvFigures(backend, 0, 0.0, 0.0, [])
+    figures = EnvFigures(backend, 0, 0.0, 0.0, 0.0, [])
     try:
         env.reset(seed=seed)  # first start builds everything; not a reset figure
         while figures.sim_s < seconds:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
             figures.step_wall_s += time.perf_counter() - t0
+            figures.step_cpu_s += time.process_time() - c0
             figures.steps += 1
             figures.sim_s += step_s
             if terminated or truncated:

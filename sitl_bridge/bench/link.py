@@ -6,14 +6,18 @@ ceiling any autopilot can reach. Cases, all at speed factor 0 (as fast as lockst
 
 - peer in the lockstep thread (a pump: how the stub runs), 1 and 2 vehicles;
 - peer in another process (how PX4 runs: every step is a TCP round trip between processes);
-- link only: precomputed sensor frames, no physics (the protocol's own cost per step).
+- link only: precomputed sensor frames, no physics (the protocol's own cost per step);
+- with PX4_BIN set: a real PX4 SITL (boot-to-ready and restart-to-ready wall times, and the
+  real-time factor of PX4 hovering at speed factor 0 and at a few paced factors).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -123,6 +127,65 @@ def _case(name: str, vehicles: int, seconds: float, *, mode: str) -> dict[str, f
             sim.close()
 
 
+def _fly_then_reset_in_place(fleet: Any, lockstep: Lockstep) -> float:
+    """Arm, take off, hover 10 s, then `reset_in_place`; returns its wall seconds."""
+    from sitl_bridge.mavlink import dialect
+
+    autopilot = fleet.autopilots[0]
+    autopilot.command(dialect.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    lockstep.run_until(lambda: autopilot.poll().armed, max_seconds=5)
+    nan = float("nan")
+    autopilot.command(dialect.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, nan, nan, nan, nan)
+    lockstep.run_for(10.0)
+    return fleet.reset_in_place(lockstep)
+
+
+def _px4_case(seconds: float) -> None:
+    """Real PX4: ready times and real-time factors (needs PX4_BIN)."""
+    from sitl_bridge.autopilot.px4 import Px4Config, Px4Fleet
+
+    world = load_world(WORLDS / "empty.yaml")
+    sim = Simulation(world)
+    links = _free_links(1, start=1)
+    instance = links[0].instance
+    if instance > 9:  # PX4 maps API ports of instances >= 10 onto one port
+        links[0].close()
+        sim.close()
+        print("  PX4: no free instance below 10, skipped")
+        return
+    lockstep = Lockstep(sim, [SensorSuite(world.home, seed=0)], links, speed_factor=0, actuator_timeout_s=5.0)
+    with tempfile.TemporaryDirectory(prefix="sitl-bridge-bench-") as run_dir:
+        config = Px4Config.create(None, run_dir, speed_factor=0, home=world.home)
+        fleet = Px4Fleet(config, [instance])
+        try:
+            start = time.perf_counter()
+            fleet.start()
+            fleet.connect(links, 60)
+            fleet.wait_ready(lockstep)
+            boot_s = time.perf_counter() - start
+            restart_s = fleet.restart(lockstep)
+            print(f"  PX4 start-to-ready {boot_s:.2f} s wall, restart-to-ready {restart_s:.2f} s wall "
+                  f"(sim reset + PX4 restart + estimator ready)")
+            in_place_s = _fly_then_reset_in_place(fleet, lockstep)
+            print(f"  PX4 in-place reset after a 2.5 m hover: {in_place_s:.2f} s wall until the estimate "
+                  f"is back within 0.3 m (vs restart {restart_s:.2f} s)")
+            fleet.restart(lockstep)
+            for factor in (0.0, 1.0, 5.0, 10.0):
+                lockstep.speed_factor = factor
+                span = seconds if factor == 0 else min(seconds, 2.0 * factor)
+                span = lockstep.steps_for_rounded(span) * sim.step_us / 1e6
+                begin = time.perf_counter()
+                lockstep.run_for(span)
+                rtf = span / (time.perf_counter() - begin)
+                label = "max" if factor == 0 else f"{factor:g}"
+                print(f"  PX4 on the ground, speed factor {label:>4}: {rtf:6.1f}x real time, "
+                      f"timeouts {lockstep.stats.timeouts}")
+        finally:
+            fleet.stop()
+            links[0].close()
+            sim.close()
+
+
 def run(args: argparse.Namespace) -> int:
     """Run every case for `args.seconds` of simulated time and print the figures."""
     seconds = float(getattr(args, "seconds", 20.0))
@@ -132,4 +195,8 @@ def run(args: argparse.Namespace) -> int:
     _case("physics + sensors + link, peer in a process", 1, seconds, mode="process")
     _case("physics + sensors + link, peer in a process", 2, seconds, mode="process")
     _case("link only (replayed frames), peer in-thread", 1, seconds, mode="link-only")
+    if os.environ.get("PX4_BIN"):
+        _px4_case(seconds)
+    else:
+        print("  PX4: set PX4_BIN to a px4_sitl_default bin/px4 to include a real PX4")
     return 0

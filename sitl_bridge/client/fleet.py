@@ -26,10 +26,21 @@ class Fleet:
     """One `OffboardClient` per vehicle instance, all on the same clock (a `SimSession`)."""
 
     def __init__(self, instances: Sequence[int], *, clock: SimClock,
-                 host: str = "127.0.0.1", base_port: int = API_CLIENT_BASE_PORT) -> None:
+                 host: str = "127.0.0.1", base_port: int = API_CLIENT_BASE_PORT,
+                 urls: Sequence[str] | None = None) -> None:
         self.clock = clock
-        self.clients = [OffboardClient(i, clock=clock, host=host, base_port=base_port)
-                        for i in instances]
+        if urls is not None and len(urls) != len(instances):
+            raise OffboardClientError(f"{len(urls)} URLs for {len(instances)} vehicles")
+        self.clients = [
+            OffboardClient(i, clock=clock, host=host, base_port=base_port,
+                           url=None if urls is None else urls[k])
+            for k, i in enumerate(instances)
+        ]
+
+    @classmethod
+    def for_session(cls, session: Any) -> Fleet:
+        """One client per vehicle of a `SimSession` (its instances, API URLs and clock)."""
+        return cls(session.instances, clock=session, urls=session.api_urls)
 
     @classmethod
     def of(cls, clients: Sequence[OffboardClient], *, clock: SimClock) -> Fleet:
@@ -73,7 +84,8 @@ class Fleet:
 
     def _finish_all(self, futures: Sequence[Future[Any]], what: str, timeout_s: float = 10.0) -> None:
         wait_until(lambda: all(f.done() for f in futures), clock=self.clock, timeout_s=timeout_s,
-                   what=f"all vehicles: {what}", poll_s=OffboardClient.COMMAND_POLL_S)
+                   what=f"all vehicles: {what}", poll_s=OffboardClient.COMMAND_POLL_S,
+                   min_wall_s=OffboardClient.COMMAND_MIN_WALL_S)
         for client, future in zip(self.clients, futures, strict=True):
             client.finish(future, what)  # already done: only turns errors into exceptions
 
@@ -84,11 +96,12 @@ class Fleet:
     def arm(self) -> None:
         self._finish_all([c.submit(c.action.arm) for c in self.clients], "arm")
 
-    def takeoff(self, altitude_m: float, *, timeout_s: float = 30.0, tolerance_m: float = 0.3) -> None:
-        """Take off every vehicle to `altitude_m` and wait until all hover there in HOLD."""
+    def takeoff(self, altitude_m: float, *, timeout_s: float = 30.0, tolerance_m: float = 0.3) -> list[float]:
+        """Take off every vehicle to `altitude_m`, wait until all hover there; returns the altitudes."""
         self._finish_all([c.request_takeoff(altitude_m) for c in self.clients], "takeoff")
         self.wait_all(lambda c: c.takeoff_done(altitude_m, tolerance_m),
-                      f"takeoff to {altitude_m:g} m", timeout_s)
+                      f"hovering at {altitude_m:g} +- {tolerance_m:g} m after takeoff", timeout_s)
+        return [c.relative_altitude_m() for c in self.clients]
 
     def start_offboard(self, timeout_s: float = 5.0) -> None:
         self._finish_all([c.request_offboard() for c in self.clients], "start offboard")

@@ -73,11 +73,14 @@ def wait_until(
     timeout_s: float,
     what: str,
     poll_s: float = 0.04,
+    min_wall_s: float = 0.0,
 ) -> None:
     """Return once `predicate()` is true; raise `SimTimeoutError` after `timeout_s`.
 
     With a clock, `timeout_s` and `poll_s` are simulated seconds and the clock is advanced by
-    `poll_s` between checks (so the wait ends held). Without one they are wall seconds.
+    `poll_s` between checks (so the wait ends held); the timeout only fires once `min_wall_s`
+    of wall time has passed as well (MAVSDK retries commands on a wall-clock timer, which at
+    a high speed factor spans many simulated seconds). Without a clock they are wall seconds.
     """
     if predicate():
         return
@@ -89,8 +92,9 @@ def wait_until(
             time.sleep(min(poll_s, 0.01))  # polling an observation, not timing a manoeuvre
         return
     elapsed = 0.0
+    wall_deadline = time.monotonic() + min_wall_s
     while not predicate():
-        if elapsed >= timeout_s - 1e-9:
+        if elapsed >= timeout_s - 1e-9 and time.monotonic() >= wall_deadline:
             raise SimTimeoutError(f"{what}: not observed within {timeout_s:g} s of simulated time")
         clock.run_for(poll_s)
         elapsed += poll_s
@@ -106,6 +110,13 @@ class OffboardClient:
 
     COMMAND_POLL_S = 0.02
     """Simulated seconds advanced between checks while a MAVSDK request is in flight."""
+
+    SETTLED_VERTICAL_SPEED_M_S = 0.3
+    """Below this climb/sink rate a vehicle in HOLD after takeoff counts as hovering."""
+
+    COMMAND_MIN_WALL_S = 5.0
+    """A request is given at least this much wall time: MAVSDK resends a command 3 times
+    0.5 s (wall) apart before reporting a timeout itself, whatever the speed factor."""
 
     def __init__(
         self,
@@ -158,7 +169,19 @@ class OffboardClient:
         self._offboard = Offboard(self._system)
         self._telemetry = Telemetry(self._system)
         self._param = Param(self._system)
+        self._wait_first_heartbeat(timeout_s)
         return self
+
+    def _wait_first_heartbeat(self, timeout_s: float) -> None:
+        """Telemetry caches armed/mode from HEARTBEATs that arrive after the plugin exists;
+        wait for one so that `armed()` and friends are valid when connect() returns."""
+        telemetry = self.telemetry
+        seen = threading.Event()
+        handle = telemetry.subscribe_armed(lambda _armed, _ud: seen.set())
+        try:
+            self.wait_until(seen.is_set, "first heartbeat after connecting", timeout_s)
+        finally:
+            telemetry.unsubscribe_armed(handle)
 
     def close(self) -> None:
         """Release MAVSDK (its threads and UDP port) and the helper thread. Idempotent."""
@@ -196,7 +219,8 @@ class OffboardClient:
     def finish(self, future: Future[T], what: str, timeout_s: float = 10.0) -> T:
         """Advance the clock until `future` is done; its MAVSDK error becomes OffboardClientError."""
         wait_until(future.done, clock=self.clock, timeout_s=timeout_s,
-                   what=f"vehicle {self.instance}: {what}", poll_s=self.COMMAND_POLL_S)
+                   what=f"vehicle {self.instance}: {what}", poll_s=self.COMMAND_POLL_S,
+                   min_wall_s=self.COMMAND_MIN_WALL_S)
         try:
             return future.result()
         except (ActionError, OffboardError, ParamError) as exc:
@@ -311,23 +335,27 @@ class OffboardClient:
         return self.submit(takeoff)
 
     def takeoff_done(self, altitude_m: float, tolerance_m: float = 0.3) -> bool:
-        """Takeoff is over: in the air, back in HOLD (PX4 loiters at the takeoff altitude)."""
+        """Takeoff is over: in the air, in HOLD (PX4 loiters once near the takeoff altitude),
+        within `tolerance_m` of `altitude_m` above home and no longer climbing."""
         return (
             self.in_air()
             and self.flight_mode() == "HOLD"
             and abs(self.relative_altitude_m() - altitude_m) <= tolerance_m
+            and abs(float(self.velocity_ned_m_s()[2])) < self.SETTLED_VERTICAL_SPEED_M_S
         )
 
     def takeoff(self, altitude_m: float | None = None, *, timeout_s: float = 30.0,
                 tolerance_m: float = 0.3) -> float:
         """Take off and wait (simulated time) until hovering at the takeoff altitude.
 
-        Returns the altitude reached. Without `altitude_m` the vehicle's MIS_TAKEOFF_ALT is used.
+        Without `altitude_m` the vehicle's MIS_TAKEOFF_ALT is used. Returns the altitude above
+        home that telemetry reports. (PX4 switches to HOLD some decimetres early and climbs
+        the rest slowly; the wait covers that.)
         """
         self.finish(self.request_takeoff(altitude_m), "takeoff")
         target = float(altitude_m) if altitude_m is not None else self.get_param_float("MIS_TAKEOFF_ALT")
         self.wait_until(lambda: self.takeoff_done(target, tolerance_m),
-                        f"takeoff to {target:g} m", timeout_s)
+                        f"hovering at {target:g} +- {tolerance_m:g} m after takeoff", timeout_s)
         return self.relative_altitude_m()
 
     def set_velocity_ned(self, velocity_ned_m_s: Sequence[float] | np.ndarray,

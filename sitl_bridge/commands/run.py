@@ -54,6 +54,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--px4-bin", default=os.environ.get("PX4_BIN"),
                         help="PX4 SITL binary (bin/px4 of px4_sitl_default; default: $PX4_BIN)")
     parser.add_argument("--px4-rootfs", default=None, help="PX4 ROMFS/etc directory (default: from the build tree)")
+    parser.add_argument("--run-dir", default=None,
+                        help="keep PX4's working directories and console logs here (default: a "
+                             "temporary directory removed on exit)")
     parser.add_argument("--speed-factor", type=speed_factor_arg, default=1.0,
                         help="simulated seconds per wall second; 0 or 'max' = as fast as possible (default 1)")
     parser.add_argument("--vehicles", type=int, default=None,
@@ -90,13 +93,16 @@ def main(args: argparse.Namespace) -> int:
             gui=args.gui,
             num_vehicles=args.vehicles,
             stub_process=args.stub_process,
+            run_dir=args.run_dir,
+            # external: wait like Gazebo for autopilots started by hand, however long it takes
+            connect_timeout_s=None if args.autopilot == "external" else 60.0,
         )
     except ConfigError as exc:
         print(f"sitl-bridge run: {exc}", file=sys.stderr)
         return 2
+    _print_banner(session)
     try:
         with session:
-            _print_banner(session)
             if args.demo:
                 return _run_demo(session, args)
             return _serve(session, args)
@@ -112,9 +118,12 @@ def _print_banner(session: SimSession) -> None:
     speed = "max" if session.speed_factor == 0 else f"{session.speed_factor:g}x"
     print(f"world {session.world.name}: {session.num_vehicles} vehicle(s), autopilot "
           f"{session.autopilot}, speed {speed}", flush=True)
-    for i in session.instances:
-        print(f"  vehicle {i}: HIL tcp://127.0.0.1:{4560 + i}, MAVSDK udpin://127.0.0.1:{14540 + i}"
-              f" (autopilot sends from udp 14580+{i})", flush=True)
+    for i, url in zip(session.instances, session.api_urls, strict=True):
+        print(f"  vehicle {i}: HIL tcp://127.0.0.1:{4560 + i}, MAVSDK {url} "
+              f"(API from udp {14580 + i}), GCS udp {18570 + i} -> 14550", flush=True)
+    if session.autopilot == "external":
+        print("waiting for autopilots to connect on the HIL ports (e.g. `sitl-bridge stub -i N`, "
+              "or PX4 SITL started with PX4_SIM_MODEL=gazebo-classic_iris)", flush=True)
 
 
 def _serve(session: SimSession, args: argparse.Namespace) -> int:
@@ -155,7 +164,7 @@ def _run_demo(session: SimSession, args: argparse.Namespace) -> int:
 
     started = time.monotonic()
     sim_start = session.time_s
-    with Fleet(session.instances, clock=session) as fleet:
+    with Fleet.for_session(session) as fleet:
         results = run_demo(fleet, report=lambda text: print(f"[{session.time_s:7.2f} s] {text}", flush=True))
     wall = time.monotonic() - started
     sim = session.time_s - sim_start

@@ -51,7 +51,8 @@ def main(args: argparse.Namespace) -> int:
         result = trainer.train()
         print(f"{result.episodes} episodes ({result.global_step} steps) in {result.wall_time_s:.1f} s this session; "
               f"rolling success {result.success_rate:.0%}")
-        if result.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0:
+        finished = result.episodes >= trainer.config.episodes or trainer.stopped_early
+        if finished and trainer.config.eval_episodes > 0:
             print("greedy evaluation: " + trainer.evaluate().summary())
     return 0
 

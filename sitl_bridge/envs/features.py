@@ -11,7 +11,7 @@ Each list item is a name (`- velocity`) or a one-key mapping with options
 | `velocity` | 3 | vx, vy, vz | +- max speed (5 m/s) |
 | `goal_position` | 3 | the drone's goal point | workspace |
 | `goal_offset` | 3 | goal minus position | +- workspace diagonal |
-| `own_id` | 1 | drone index | [0, drones-1] |
+| `own_id` | 1 | drone index | [0, max(1, drones-1)] |
 | `own_priority` | 1 | the drone's priority (see below) | [0, 1] |
 | `other_priority` | count | the other drones' priorities | [0, 1] |
 | `transponder` | 6*count | other drones' x, y, z, vx, vy, vz (zeros if absent) | workspace, +- max speed |
@@ -118,7 +118,8 @@ def _goal_offset(options: Node, limits: ScenarioLimits) -> Feature:
 
 def _own_id(options: Node, limits: ScenarioLimits) -> Feature:
     _no_options(options)
-    return Feature("own_id", np.zeros(1), np.full(1, float(max(0, limits.num_drones - 1))),
+    # high at least 1: a one-drone scenario keeps a proper range (and W matches TW for transfer)
+    return Feature("own_id", np.zeros(1), np.full(1, float(max(1, limits.num_drones - 1))),
                    lambda v: np.array([float(v.index)]))
 
 

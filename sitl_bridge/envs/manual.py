@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from sitl_bridge.envs.scenario import Scenario
+from sitl_bridge.envs.scenario import Scenario, load_scenario
 
 
 def _bounds(values: np.ndarray) -> str:
-    lo, hi = float(np.min(values)), float(np.max(values))
-    return f"{lo:g}" if lo == hi else f"{lo:g} .. {hi:g}"
+    if np.all(values == values[0]):
+        return f"{float(values[0]):g}"
+    if values.size <= 6:
+        return "[" + ", ".join(f"{float(v):g}" for v in values) + "]"
+    return f"{float(np.min(values)):g} .. {float(np.max(values)):g}"
 
 
 def describe(scenario: Scenario) -> str:
@@ -43,3 +46,21 @@ def describe(scenario: Scenario) -> str:
     lines += ["", "## Episode end",
               f"Terminated: {'; '.join(ends)}. Truncated: after {task.max_steps} steps.", ""]
     return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m sitl_bridge.envs [FILE...]`: print the manual of each scenario file
+    (default: every file of the worlds directory)."""
+    import sys
+
+    from sitl_bridge.envs import worlds_dir
+    from sitl_bridge.errors import ConfigError
+
+    paths = (argv if argv is not None else sys.argv[1:]) or sorted(str(p) for p in worlds_dir().glob("*.yaml"))
+    for path in paths:
+        try:
+            print(describe(load_scenario(path)))
+        except ConfigError as exc:
+            print(exc, file=sys.stderr)
+            return 1
+    return 0

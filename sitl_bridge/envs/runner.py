@@ -118,7 +118,8 @@ class EpisodeRunner:
         for i in range(self.num_drones):
             if self.done[i]:
                 view = self._view(i, snapshot, before.states[i].position_enu_m, crashed=False)
-                results.append(DroneResult(self._observe(view), 0.0, True, False,
+                timeout = self.outcomes[i] == "timeout"
+                results.append(DroneResult(self._observe(view), 0.0, not timeout, timeout,
                                            self._info(view, self.outcomes[i], {}, None)))
                 continue
             results.append(self._score(i, snapshot, before, collided[i], actions.get(i)))
@@ -201,6 +202,7 @@ class EpisodeRunner:
             "outcome": outcome,
             "reward_terms": terms,
             "position_enu_m": view.position_enu_m.copy(),
+            "start_enu_m": view.start_enu_m.copy(),
             "goal_enu_m": view.goal_enu_m.copy(),
             "distance_to_goal_m": view.distance_to_goal_m,
             "crashed": view.crashed,

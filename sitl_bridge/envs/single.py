@@ -81,8 +81,9 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     `task.max_steps` steps (`"timeout"`).
 
     ## Info
-    `step`, `sim_time_s`, `action`, `outcome` (None or goal/crash/out/timeout), `reward_terms`
-    (name -> scaled value), `position_enu_m`, `goal_enu_m`, `distance_to_goal_m`, `crashed`,
+    `step`, `sim_time_s` (simulated time since the episode's reset began), `action`, `outcome`
+    (None or goal/crash/out/timeout), `reward_terms` (name -> scaled value), `position_enu_m`,
+    `start_enu_m`, `goal_enu_m` (centre of the goal region), `distance_to_goal_m`, `crashed`,
     `near_obstacle`.
 
     ## Arguments

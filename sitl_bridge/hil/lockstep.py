@@ -94,7 +94,7 @@ class Lockstep:
         *,
         speed_factor: float = 1.0,
         pumps: Iterable[Pump] = (),
-        actuator_timeout_s: float = 1.0,
+        actuator_timeout_s: float = 5.0,
         on_timeout: str = "raise",
     ) -> None:
         if len(sensors) != len(links):
@@ -223,6 +223,15 @@ class Lockstep:
             self.stats.sim_s += (self.sim.time_us - self._segment_sim0_us) / 1e6
             self.stats.wall_s += now - self._segment_wall0
             self._last_rtf = self._segment_rtf(now)
+
+    def reset_simulation(self, seed: int | None = None) -> None:
+        """Hold, reset the simulation in place (time 0, vehicles re-spawned) and every sensor
+        suite with it (their sample schedules follow simulated time). The links keep the
+        autopilots' clock monotonic across the jump."""
+        self.hold()
+        self.sim.reset(seed)
+        for index, suite in enumerate(self.sensors):
+            suite.reset(None if seed is None else seed + index)
 
     def idle(self, timeout_s: float = 0.0) -> None:
         """Without advancing time: run the pumps and read the links once, then keep doing so

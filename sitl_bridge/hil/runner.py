@@ -110,11 +110,14 @@ class SimRunner:
             self._held = steps == 0
             self._cond.notify_all()
 
-    def _raise_error(self) -> None:
+    def check(self) -> None:
+        """Re-raise (once) an exception that stopped the simulation thread."""
         error = self.error
         if error is not None:
             self.error = None
             raise error
+
+    _raise_error = check  # older name, kept for callers
 
     def _loop(self) -> None:
         lockstep = self.lockstep

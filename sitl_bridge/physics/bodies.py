@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import pybullet as p
-
 from sitl_bridge.frames import quat_from_euler_t, quaternion_to_pybullet, yaw_quaternion_enu_flu
+from sitl_bridge.physics.bullet import p
 from sitl_bridge.physics.iris import IrisParams
 from sitl_bridge.world.schema import Shape, Vec3
 
@@ -19,7 +18,7 @@ def create_ground(client: int, *, visual: bool = False) -> int:
     return p.createMultiBody(0.0, shape, vis, physicsClientId=client)
 
 
-def _shapes(client: int, shape: Shape, color: tuple[float, ...], visual: bool) -> tuple[int, int]:
+def _shapes(client: int, shape: Shape, color: tuple[float, ...], visual: bool, static: bool) -> tuple[int, int]:
     """(collision shape id, visual shape id or -1) for one obstacle shape."""
     kind = shape.kind
     if kind == "wall":
@@ -54,7 +53,9 @@ def _shapes(client: int, shape: Shape, color: tuple[float, ...], visual: bool) -
         geom = p.GEOM_MESH
         kwargs["fileName"] = shape.mesh_file
         kwargs["meshScale"] = list(shape.mesh_scale)
-    col = p.createCollisionShape(geom, physicsClientId=client, **kwargs)
+    # static meshes collide as triangle meshes (concave houses); moving ones as convex hulls
+    flags = p.GEOM_FORCE_CONCAVE_TRIMESH if kind == "mesh" and static else 0
+    col = p.createCollisionShape(geom, flags=flags, physicsClientId=client, **kwargs)
     vis = p.createVisualShape(geom, rgbaColor=color, physicsClientId=client, **kwargs) if visual else -1
     return col, vis
 
@@ -62,7 +63,7 @@ def _shapes(client: int, shape: Shape, color: tuple[float, ...], visual: bool) -
 def create_obstacle(client: int, shape: Shape, position_m: Vec3, yaw_rad: float,
                     color: tuple[float, ...], *, mass_kg: float = 0.0, visual: bool = False) -> int:
     """A static (mass 0) or moving (mass > 0, pose driven by a mover) obstacle body."""
-    col, vis = _shapes(client, shape, color, visual)
+    col, vis = _shapes(client, shape, color, visual, static=mass_kg <= 0.0)
     orientation = quaternion_to_pybullet(quat_from_euler_t(0.0, 0.0, yaw_rad))
     body = p.createMultiBody(mass_kg, col, vis, basePosition=list(position_m), baseOrientation=orientation,
                              physicsClientId=client)

@@ -80,7 +80,8 @@ class RotorSet:
         for i in range(4):
             if armed:
                 u = controls[i]
-                u = 0.0 if u < 0.0 else 1.0 if u > 1.0 else u
+                u = u if u > 0.0 else 0.0  # also maps NaN to 0: a bad command must not explode the physics
+                u = 1.0 if u > 1.0 else u
                 ref = u * scale + zero
                 if ref > top:
                     ref = top

@@ -41,6 +41,10 @@ class Patrol:
         self._cycle_m = sum(s[2] for s in self._segments)
         self._distance_m = 0.0
 
+    @property
+    def speed_m_s(self) -> float:
+        return self.spec.speed_m_s
+
     def reset(self, rng: np.random.Generator) -> None:
         self._distance_m = 0.0
 
@@ -75,6 +79,10 @@ class RandomLegs:
         self._position: Vec3 = self._start  # type: ignore[assignment]
         self._target: Vec3 = self._start  # type: ignore[assignment]
         self._velocity: Vec3 = (0.0, 0.0, 0.0)
+
+    @property
+    def speed_m_s(self) -> float:
+        return self.spec.speed_m_s
 
     def reset(self, rng: np.random.Generator) -> None:
         self._rng = rng

@@ -12,167 +12,42 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
-import pybullet as p
 
 from sitl_bridge.frames import (
-    enu_to_ned_xyz,
-    flu_to_frd_xyz,
-    quat_enu_flu_to_ned_frd_t,
+    quat_from_euler_t,
     quat_rotate_inverse_t,
-    quat_to_euler_t,
     quat_to_matrix_t,
     quaternion_to_pybullet,
     yaw_quaternion_enu_flu,
 )
 from sitl_bridge.physics.bodies import create_ground, create_obstacle, create_vehicle
+from sitl_bridge.physics.bullet import p
 from sitl_bridge.physics.iris import IrisParams, RotorSet
 from sitl_bridge.physics.movers import Patrol, RandomLegs, make_mover
+from sitl_bridge.physics.state import Collision, MotorCommand, VehicleState
 from sitl_bridge.world.layout import Layout, realize
-from sitl_bridge.world.schema import World
+from sitl_bridge.world.schema import Shape, World
+
+__all__ = ["Collision", "MotorCommand", "Simulation", "VehicleState"]
 
 Vec3 = tuple[float, float, float]
 _WORLD_FRAME = p.WORLD_FRAME
+#: A spawn whose body centre is less than this above resting height starts resting on the ground.
+GROUND_SNAP_M = 0.02
+#: Physics steps run before time 0 so vehicles spawned on the ground start settled on it.
+SETTLE_STEPS = 100
 
 
-@dataclass(frozen=True)
-class MotorCommand:
-    """Motor inputs of one vehicle for one step (what HIL_ACTUATOR_CONTROLS carries)."""
-
-    controls: tuple[float, float, float, float]  # PX4 motors 1..4 (quad-X order), each in [0, 1]
-    armed: bool                                  # False -> rotors spin down to 0
-
-    @staticmethod
-    def disarmed() -> MotorCommand:
-        """All motors off, disarmed."""
-        return _DISARMED
-
-
-_DISARMED = MotorCommand((0.0, 0.0, 0.0, 0.0), False)
-
-
-@dataclass(frozen=True)
-class Collision:
-    """One contact reported for the last step.
-
-    kind: "obstacle" (other = obstacle name), "vehicle" (other = the other vehicle's name) or
-    "ground" (other = "ground"; only hard contacts: faster than the world's
-    `hard_ground_speed_m_s` or tilted beyond `crash_tilt_deg`, so resting/landing is not one).
-    """
-
-    vehicle: int
-    kind: str
-    other: str
-    speed_m_s: float
-    time_us: int
-
-
-def _readonly(values) -> np.ndarray:
-    array = np.array(values, dtype=float)
-    array.flags.writeable = False
-    return array
-
-
-class VehicleState:
-    """Vehicle state after a step: world ENU, body FLU; NED/FRD views as properties.
-
-    Immutable. The arrays are built on first access from the plain-float tuples in `raw`
-    (position, quaternion, velocity, angular velocity, specific force, acceleration), which
-    per-step consumers such as `SensorSuite` read directly to skip numpy.
-    """
-
-    def __init__(self, position_enu_m, quaternion_enu_flu, velocity_enu_m_s, angular_velocity_flu_rad_s,
-                 specific_force_flu_m_s2, rotor_speeds_rad_s, acceleration_enu_m_s2=(0.0, 0.0, 0.0),
-                 on_ground: bool = False) -> None:
-        def floats(values) -> tuple[float, ...]:
-            return tuple(float(c) for c in values)
-
-        self.raw: tuple[tuple[float, ...], ...] = (
-            floats(position_enu_m), floats(quaternion_enu_flu), floats(velocity_enu_m_s),
-            floats(angular_velocity_flu_rad_s), floats(specific_force_flu_m_s2), floats(acceleration_enu_m_s2))
-        self._rotor_speeds = floats(rotor_speeds_rad_s)
-        self.on_ground = bool(on_ground)  # touching the ground plane this step
-
-    @classmethod
-    def _from_tuples(cls, raw: tuple, rotor_speeds: tuple[float, ...], on_ground: bool) -> VehicleState:
-        state = cls.__new__(cls)
-        state.raw = raw
-        state._rotor_speeds = rotor_speeds
-        state.on_ground = on_ground
-        return state
-
-    def __repr__(self) -> str:
-        names = ("position_enu_m", "quaternion_enu_flu", "velocity_enu_m_s", "angular_velocity_flu_rad_s",
-                 "specific_force_flu_m_s2", "acceleration_enu_m_s2")
-        parts = [f"{n}={tuple(round(c, 4) for c in r)}" for n, r in zip(names, self.raw, strict=True)]
-        return f"VehicleState({', '.join(parts)}, on_ground={self.on_ground})"
-
-    # -- contract fields (ENU / FLU) --------------------------------------------------------
-    @cached_property
-    def position_enu_m(self) -> np.ndarray:
-        return _readonly(self.raw[0])
-
-    @cached_property
-    def quaternion_enu_flu(self) -> np.ndarray:
-        """(w, x, y, z), rotates FLU vectors into ENU."""
-        return _readonly(self.raw[1])
-
-    @cached_property
-    def velocity_enu_m_s(self) -> np.ndarray:
-        return _readonly(self.raw[2])
-
-    @cached_property
-    def angular_velocity_flu_rad_s(self) -> np.ndarray:
-        return _readonly(self.raw[3])
-
-    @cached_property
-    def specific_force_flu_m_s2(self) -> np.ndarray:
-        """What an ideal accelerometer reads (at rest: +g along body up)."""
-        return _readonly(self.raw[4])
-
-    @cached_property
-    def acceleration_enu_m_s2(self) -> np.ndarray:
-        """Coordinate acceleration over the last step (extension of the contract)."""
-        return _readonly(self.raw[5])
-
-    @cached_property
-    def rotor_speeds_rad_s(self) -> np.ndarray:
-        """PX4 motor order 1..4."""
-        return _readonly(self._rotor_speeds)
-
-    # -- PX4 views (NED / FRD) ---------------------------------------------------------------
-    @cached_property
-    def position_ned_m(self) -> np.ndarray:
-        return _readonly(enu_to_ned_xyz(*self.raw[0]))
-
-    @cached_property
-    def velocity_ned_m_s(self) -> np.ndarray:
-        return _readonly(enu_to_ned_xyz(*self.raw[2]))
-
-    @cached_property
-    def acceleration_ned_m_s2(self) -> np.ndarray:
-        return _readonly(enu_to_ned_xyz(*self.raw[5]))
-
-    @cached_property
-    def quaternion_ned_frd(self) -> np.ndarray:
-        """(w, x, y, z), rotates FRD vectors into NED (PX4's attitude)."""
-        return _readonly(quat_enu_flu_to_ned_frd_t(self.raw[1]))
-
-    @cached_property
-    def euler_ned_frd_rad(self) -> np.ndarray:
-        """(roll, pitch, yaw) as PX4 reports them (yaw from north, clockwise)."""
-        return _readonly(quat_to_euler_t(quat_enu_flu_to_ned_frd_t(self.raw[1])))
-
-    @cached_property
-    def angular_velocity_frd_rad_s(self) -> np.ndarray:
-        return _readonly(flu_to_frd_xyz(*self.raw[3]))
-
-    @cached_property
-    def specific_force_frd_m_s2(self) -> np.ndarray:
-        return _readonly(flu_to_frd_xyz(*self.raw[4]))
+def _bounding_radius_m(shape: Shape) -> float:
+    """Radius of a sphere around the shape's centre that contains it."""
+    if shape.kind == "sphere":
+        return shape.radius_m or 0.0
+    if shape.kind == "cylinder":
+        return math.hypot(shape.radius_m or 0.0, (shape.height_m or 0.0) / 2.0)
+    sx, sy, sz = shape.size_m or (0.0, 0.0, 0.0)
+    return 0.5 * math.sqrt(sx * sx + sy * sy + sz * sz)  # a mesh's size is its scaled bounding box
 
 
 class _Vehicle:
@@ -272,10 +147,14 @@ class Simulation:
         for _, mover in self._movers:
             mover.advance(self.step_s)
         self._collisions = []
+        speeds_before = []
         for v in vehicles:
-            speed_before = math.sqrt(v.velocity[0] ** 2 + v.velocity[1] ** 2 + v.velocity[2] ** 2)
+            speeds_before.append(math.sqrt(v.velocity[0] ** 2 + v.velocity[1] ** 2 + v.velocity[2] ** 2))
             self._read_state(v)
-            self._detect_collisions(v, speed_before)
+        # all states first: the vehicle-vehicle test needs every vehicle's new position
+        top_speed = max(speeds_before)
+        for v, speed in zip(vehicles, speeds_before, strict=True):
+            self._detect_collisions(v, speed, top_speed)
 
     def state(self, vehicle: int) -> VehicleState:
         """The vehicle's state after the last step (or at spawn before the first step)."""
@@ -346,9 +225,10 @@ class Simulation:
         self.close()
 
     def __del__(self) -> None:
-        # a forgotten close() must not leak a pybullet client
+        # a forgotten close() must not leak a pybullet client (nor fail at interpreter exit)
         if not getattr(self, "_closed", True):
-            self.close()
+            with contextlib.suppress(Exception):
+                self.close()
 
     # -- internals --------------------------------------------------------------------------
     def _build(self) -> None:
@@ -362,12 +242,15 @@ class Simulation:
         p.setGravity(0.0, 0.0, -self.gravity_m_s2, physicsClientId=cid)
         p.setPhysicsEngineParameter(fixedTimeStep=self.step_s, numSubSteps=0,
                                     numSolverIterations=world.physics.solver_iterations,
-                                    deterministicOverlappingPairs=1, physicsClientId=cid)
+                                    deterministicOverlappingPairs=0, physicsClientId=cid)
         self._body_kind: dict[int, tuple[str, str]] = {}
         self._ground = create_ground(cid, visual=self.gui) if world.ground else -2
         self._body_kind[self._ground] = ("ground", "ground")
         self._obstacle_bodies: dict[str, int] = {}
         self._movers: list[tuple[int, Patrol | RandomLegs]] = []
+        self._mover_radii: list[float] = []
+        self._static_boxes: list[tuple[float, ...]] = []
+        self._vehicle_radius_m = 0.5 * math.sqrt(sum(s * s for s in self.params.collision_box_m))
         for placement in self._layout.obstacles:
             spec = placement.spec
             mover = make_mover(spec.mover, placement.position_m) if spec.mover is not None else None
@@ -382,12 +265,43 @@ class Simulation:
             self._body_kind[body] = ("obstacle", spec.name)
             if mover is not None:
                 self._movers.append((body, mover))
+                self._mover_radii.append(_bounding_radius_m(placement.shape))
+            else:
+                lo, hi = p.getAABB(body, physicsClientId=cid)
+                self._static_boxes.append((*lo, *hi))
+        rest_z = self.params.collision_box_m[2] / 2.0
+        on_ground = []
         for v in self._vehicles:
             v.rotors.reset()
-            v.body = create_vehicle(cid, self.params, self._layout.spawn_positions_m[v.index],
+            x, y, z = self._layout.spawn_positions_m[v.index]
+            grounded = world.ground and z < rest_z + GROUND_SNAP_M
+            on_ground.append(grounded)
+            v.body = create_vehicle(cid, self.params, (x, y, rest_z if grounded else z),
                                     self._layout.spawn_yaws_rad[v.index], visual=self.gui)
             self._body_kind[v.body] = ("vehicle", v.name)
+        if any(on_ground):
+            self._settle(on_ground)
+        for v in self._vehicles:
             self._init_state(v)
+
+    def _settle(self, on_ground: list[bool]) -> None:
+        """Let grounded vehicles sink into their contacts before time 0, so the first sensor
+        frames read a vehicle at rest (-g, no touchdown spike that PX4's checks would see)."""
+        cid = self.client_id
+        for _ in range(SETTLE_STEPS):
+            p.stepSimulation(physicsClientId=cid)
+        for v, grounded in zip(self._vehicles, on_ground, strict=True):
+            if grounded:
+                p.resetBaseVelocity(v.body, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), physicsClientId=cid)
+            else:  # vehicles spawned in the air start where they were spawned
+                spawn = self._layout.spawn_positions_m[v.index]
+                orientation = quaternion_to_pybullet(yaw_quaternion_enu_flu(self._layout.spawn_yaws_rad[v.index]))
+                p.resetBasePositionAndOrientation(v.body, spawn, orientation, physicsClientId=cid)
+                p.resetBaseVelocity(v.body, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), physicsClientId=cid)
+        for body, mover in self._movers:  # movers do not move before time 0
+            pose = mover.pose()
+            p.resetBasePositionAndOrientation(body, pose.position_m, self._facing(pose.yaw_rad, pose.pitch_rad),
+                                              physicsClientId=cid)
 
     def _init_state(self, v: _Vehicle) -> None:
         """State at rest (no step taken yet): accelerometer reads +g along world up."""
@@ -428,9 +342,37 @@ class Simulation:
                          r02 * wx + r12 * wy + r22 * wz)
         v.cached = None
 
-    def _detect_collisions(self, v: _Vehicle, speed_m_s: float) -> None:
-        contacts = p.getContactPoints(bodyA=v.body, physicsClientId=self.client_id)
+    def _may_touch(self, v: _Vehicle, margin_m: float, vehicle_margin_m: float) -> bool:
+        """Cheap bounding-volume test: could the vehicle touch anything? (getContactPoints is a
+        server round trip costing as much as a third of a physics step; skip it in free air)."""
+        x, y, z = v.position
+        reach = self._vehicle_radius_m + margin_m
+        if z < reach and self._ground >= 0:
+            return True
+        for x0, y0, z0, x1, y1, z1 in self._static_boxes:
+            if x0 - reach < x < x1 + reach and y0 - reach < y < y1 + reach and z0 - reach < z < z1 + reach:
+                return True
+        pair_reach = 2.0 * self._vehicle_radius_m + vehicle_margin_m
+        for other in self._vehicles:
+            if other is not v:
+                ox, oy, oz = other.position
+                if (ox - x) ** 2 + (oy - y) ** 2 + (oz - z) ** 2 < pair_reach * pair_reach:
+                    return True
+        for radius, (_, mover) in zip(self._mover_radii, self._movers, strict=True):
+            pose = mover.pose()
+            mx, my, mz = pose.position_m
+            mover_reach = reach + radius + 2.0 * mover.speed_m_s * self.step_s
+            if (mx - x) ** 2 + (my - y) ** 2 + (mz - z) ** 2 < mover_reach * mover_reach:
+                return True
+        return False
+
+    def _detect_collisions(self, v: _Vehicle, speed_m_s: float, top_speed_m_s: float) -> None:
         v.on_ground = False
+        # margins: contact threshold plus how far the bodies can close in one step
+        closing_m = 2.0 * self.step_s
+        if not self._may_touch(v, 0.1 + closing_m * speed_m_s, 0.1 + closing_m * (speed_m_s + top_speed_m_s)):
+            return
+        contacts = p.getContactPoints(bodyA=v.body, physicsClientId=self.client_id)
         if not contacts:
             return
         seen: set[int] = set()
@@ -450,8 +392,6 @@ class Simulation:
 
     @staticmethod
     def _facing(yaw_rad: float, pitch_up_rad: float) -> tuple[float, float, float, float]:
-        """pybullet (x, y, z, w) orientation facing along yaw, nose up by pitch (FLU body)."""
-        cy, sy = math.cos(yaw_rad * 0.5), math.sin(yaw_rad * 0.5)
-        cp, sp = math.cos(-pitch_up_rad * 0.5), math.sin(-pitch_up_rad * 0.5)
-        # q = q_yaw(z) * q_pitch(y)
-        return (-sy * sp, cy * sp, sy * cp, cy * cp)
+        """pybullet (x, y, z, w) orientation facing along yaw, nose up by pitch (FLU: nose up is
+        a negative rotation about the body's left axis)."""
+        return quaternion_to_pybullet(quat_from_euler_t(0.0, -pitch_up_rad, yaw_rad))

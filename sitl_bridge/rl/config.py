@@ -81,6 +81,8 @@ class TrainConfig:
     """Greedy evaluation episodes after training and at every eval_every (0 = none)."""
     eval_every: int = 0
     """Also evaluate greedily every this many training episodes (0 = only at the end)."""
+    stop_on_success: float = 0.0
+    """Stop early once a periodic greedy evaluation reaches this success rate (0 = never)."""
     checkpoints_kept: int = 3
     """Checkpoints kept on disk; older ones are deleted (the newest good one is used on resume)."""
     replay_segment_rows: int = 50_000
@@ -119,6 +121,7 @@ class TrainConfig:
             ("max_grad_norm", self.max_grad_norm >= 0.0, "a non-negative number"),
             ("eval_episodes", self.eval_episodes >= 0, "an integer >= 0"),
             ("eval_every", self.eval_every >= 0, "an integer >= 0"),
+            ("stop_on_success", 0.0 <= self.stop_on_success <= 1.0, "a number in [0, 1]"),
             ("checkpoints_kept", self.checkpoints_kept >= 2, "an integer >= 2 (one to fall back on)"),
             ("replay_segment_rows", self.replay_segment_rows >= 1, "an integer >= 1"),
             ("success_window", self.success_window >= 1, "an integer >= 1"),

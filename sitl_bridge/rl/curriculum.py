@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,7 +32,7 @@ from sitl_bridge.rl.config import load_train_config, parse_train_node
 from sitl_bridge.rl.drones_env import scenario_env_factory
 from sitl_bridge.rl.evaluate import evaluate_checkpoint
 from sitl_bridge.rl.run_dir import RunSpec
-from sitl_bridge.rl.trainer import Trainer
+from sitl_bridge.rl.trainer import ShapeMismatch, Trainer
 
 log = logging.getLogger(__name__)
 STATE_FILE = "curriculum.json"
@@ -55,7 +56,7 @@ def _world_path(node: Node, base: Path) -> str:
     text = node.string()
     for candidate in (Path(text), base / text):
         if candidate.is_file():
-            return str(candidate)
+            return os.path.normpath(candidate)
     raise node.error("an existing scenario file (relative to the current directory or the curriculum file)")
 
 
@@ -73,12 +74,26 @@ def load_curriculum(path: str | Path) -> Curriculum:
         # Validate the overrides against the world's own train: section now, not after hours.
         parse_train_node(train, load_train_config(world))
         stages.append(Stage(world, dict(train.value or {})))
+    check_transfers([stage.world for stage in stages], source=str(path))
     return Curriculum(
         name=node.get("name", Path(path).stem).string(),
         stages=tuple(stages),
         eval_episodes=node.get("eval_episodes", 50).integer(minimum=0),
         source=str(path),
     )
+
+
+def check_transfers(worlds: list[str], source: str) -> None:
+    """Fail before any training when a stage's network cannot feed the next (input sizes differ)."""
+    from sitl_bridge.envs.scenario import load_scenario
+
+    sizes = [load_scenario(world).task.observation_size for world in worlds]
+    for i in range(len(worlds) - 1):
+        (a, size_a), (b, size_b) = (worlds[i], sizes[i]), (worlds[i + 1], sizes[i + 1])
+        if size_a != size_b:
+            raise ShapeMismatch(
+                f"{source}: cannot transfer {a} ({size_a} inputs) -> {b} ({size_b} inputs); pad the "
+                "smaller observation with a `dummy: N` feature so both have the same size")
 
 
 @dataclass

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl_bridge.rl.episode_log import read_records
-from sitl_bridge.rl.run_dir import EPISODES_FILE, EVAL_FILE
+from sitl_bridge.rl.run_dir import EPISODES_FILE, EVAL_FILE, EVALS_FILE
 
 
 def per_episode(records: list[dict]) -> dict[str, np.ndarray]:
@@ -35,12 +35,19 @@ def per_episode(records: list[dict]) -> dict[str, np.ndarray]:
 
 
 def rolling_mean(values: np.ndarray, window: int) -> np.ndarray:
-    """Mean of the last `window` values at each point (fewer at the start)."""
-    if len(values) == 0:
-        return values
-    sums = np.cumsum(np.insert(values, 0, 0.0))
-    counts = np.minimum(np.arange(1, len(values) + 1), window)
-    return (sums[1:] - sums[np.maximum(np.arange(1, len(values) + 1) - window, 0)]) / counts
+    """Mean of the finite values among the last `window` at each point (NaN where none)."""
+    finite = np.isfinite(values)
+    sums = np.cumsum(np.insert(np.where(finite, values, 0.0), 0, 0.0))
+    counts = np.cumsum(np.insert(finite.astype(float), 0, 0.0))
+    end = np.arange(1, len(values) + 1)
+    start = np.maximum(end - window, 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (sums[end] - sums[start]) / (counts[end] - counts[start])
+
+
+def _read_evals(run_dir: Path) -> list[dict]:
+    path = run_dir / EVALS_FILE
+    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.exists() else []
 
 
 def plot_run(run_dir: str | Path, out: str | Path | None = None, window: int = 50) -> Path:
@@ -64,6 +71,10 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, window: int = 5
     ax = axes[0, 1]
     ax.plot(x, rolling_mean(data["success"], window), color="C2", label="goal")
     ax.plot(x, rolling_mean(data["crash"], window), color="C3", label="crash")
+    evals = _read_evals(run_dir)
+    if evals:
+        ax.plot([e["after_episodes"] - 1 for e in evals], [e["success_rate"] for e in evals], "o",
+                color="k", ms=4, label="greedy eval")
     ax.set_ylim(-0.02, 1.02)
     ax.set_ylabel(f"rate (last {window} episodes)")
     ax.legend(loc="center right")
@@ -75,7 +86,7 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None, window: int = 5
     loss = data["loss"]
     if np.any(np.isfinite(loss) & (loss > 0)):
         ax.semilogy(x, loss, color="0.75", lw=0.6)
-        ax.semilogy(x, rolling_mean(np.nan_to_num(loss, nan=0.0), window), color="C4")
+        ax.semilogy(x, rolling_mean(loss, window), color="C4")
     ax.set_ylabel("mean loss")
     ax.set_xlabel("episode")
     title = run_dir.name

@@ -19,6 +19,7 @@ import io
 import json
 import logging
 import random
+import shutil
 import sys
 import time
 from collections import deque
@@ -110,6 +111,8 @@ class Trainer:
         self.recent_success: deque[bool] = deque(maxlen=config.success_window)
         self._kept: list[tuple[Path, int]] = []  # (checkpoint, replay rows it needs)
         self._writer: Any = None
+        self.stopped_early = False
+        """True when a greedy evaluation reached `stop_on_success` (the run counts as done)."""
 
     # -- construction -------------------------------------------------------------------
     @classmethod
@@ -123,7 +126,12 @@ class Trainer:
         run_dir = rd.create_run_dir(out, spec, config)
         trainer = cls(run_dir, spec, config, env_factory, **kwargs)
         if init is not None:
-            trainer._load_init(*init)
+            try:
+                trainer._load_init(*init)
+            except ShapeMismatch:
+                trainer.close()
+                shutil.rmtree(run_dir)  # just created, holds nothing yet
+                raise
         return trainer
 
     @classmethod
@@ -255,7 +263,11 @@ class Trainer:
                 bar.update(1)
                 if (self.config.eval_every and self.config.eval_episodes
                         and self.episode % self.config.eval_every == 0 and self.episode < self.config.episodes):
-                    greedy = f"{self.evaluate().success_rate:.0%}"
+                    success = self.evaluate().success_rate
+                    greedy = f"{success:.0%}"
+                    if self.config.stop_on_success and success >= self.config.stop_on_success:
+                        self.stopped_early = True
+                        break
                 bar.set_postfix(eps_s=f"{(self.episode - first_episode) / max(elapsed, 1e-9):.2f}",
                                 success=f"{self.success_rate():.2f}", epsilon=f"{records[0].epsilon:.3f}",
                                 greedy=greedy)
@@ -296,7 +308,9 @@ class Trainer:
         wall_start = time.perf_counter()
         env_seed = episode_seed(self.spec.seed, self.episode)
         epsilon_start = self.epsilon()
-        obs, _ = self.env.reset(env_seed)
+        obs, reset_infos = self.env.reset(env_seed)
+        # The env's clock may include the take-off before the first step: count from reset.
+        sim_start = sim_time_s(reset_infos.get(0, {})) or 0.0
         drones = range(self.env.num_drones)
         actions: dict[int, list[int]] = {i: [] for i in drones}
         rewards = dict.fromkeys(drones, 0.0)
@@ -342,7 +356,7 @@ class Trainer:
         records = [EpisodeRecord(
             episode=self.episode - 1, drone=i, actions=actions[i], reward=rewards[i],
             reward_terms=terms[i], outcome=outcome.get(i, "timeout"), steps=len(actions[i]),
-            sim_time_s=sim_time, wall_time_s=wall, epsilon=epsilon_start,
+            sim_time_s=max(sim_time - sim_start, 0.0), wall_time_s=wall, epsilon=epsilon_start,
             mean_loss=float(np.mean(losses)) if losses else None, global_step=self.global_step,
             env_seed=env_seed, extra=_jsonable_extra(final_info.get(i, {})),
         ) for i in drones]

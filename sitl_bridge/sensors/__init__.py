@@ -2,6 +2,7 @@
 lidar (`Lidar` -> `LidarScan`), and the geodesy / atmosphere / magnetic field they measure."""
 
 from sitl_bridge.sensors.geodesy import Projection, geodetic_to_local_ned, local_ned_to_geodetic
+from sitl_bridge.sensors.lidar import Lidar, LidarConfig, LidarScan
 from sitl_bridge.sensors.suite import (
     BaroSample,
     GpsSample,
@@ -13,6 +14,6 @@ from sitl_bridge.sensors.suite import (
 )
 
 __all__ = [
-    "BaroSample", "GpsSample", "GroundTruth", "Projection", "SensorFrame", "SensorNoise", "SensorRates",
+    "BaroSample", "GpsSample", "GroundTruth", "Lidar", "LidarConfig", "LidarScan", "Projection", "SensorFrame", "SensorNoise", "SensorRates",
     "SensorSuite", "geodetic_to_local_ned", "local_ned_to_geodetic",
 ]

@@ -14,17 +14,20 @@ from __future__ import annotations
 
 import collections
 import math
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet as p
 
 from sitl_bridge.frames import quat_to_matrix_t
+from sitl_bridge.physics.bullet import p
 from sitl_bridge.physics.simulation import Simulation
 from sitl_bridge.world.schema import LidarConfig
 
 __all__ = ["Lidar", "LidarConfig", "LidarScan", "ray_directions_flu"]
+
+_HIT_FRACTION = operator.itemgetter(2)  # rayTestBatch result: (body, link, fraction, position, normal)
 
 
 @dataclass
@@ -84,6 +87,11 @@ class Lidar:
             mask = np.concatenate([np.full(len(g), name in c.flag_groups)
                                    for name, g in (("horizontal", h), ("up", u), ("down", d))])
             self._flag_masks.append(mask)
+        sizes = [len(scaled) for scaled in self._scaled]
+        bounds = np.cumsum([0, *sizes])
+        self._slices = [(int(bounds[i]), int(bounds[i + 1])) for i in range(len(sizes))]
+        self._starts = np.zeros((int(bounds[-1]), 3))
+        self._ends = np.zeros((int(bounds[-1]), 3))
         self._history: list[collections.deque[np.ndarray]] = [
             collections.deque(maxlen=c.filter_window) for c in self.configs]
 
@@ -94,17 +102,17 @@ class Lidar:
 
     def scan(self) -> list[LidarScan]:
         """Cast every vehicle's rays at the current simulation state, one batch for all."""
-        starts: list[np.ndarray] = []
-        ends: list[np.ndarray] = []
+        starts, ends = self._starts, self._ends
         for i, scaled in enumerate(self._scaled):
+            a, b = self._slices[i]
             position, q_wxyz = self.sim.pose(i)
             rotation = np.array(quat_to_matrix_t(q_wxyz)).reshape(3, 3)
-            origin = np.array(position)
-            ends.append(scaled @ rotation.T + origin)
-            starts.append(np.broadcast_to(origin, scaled.shape))
-        results = p.rayTestBatch(np.vstack(starts).tolist(), np.vstack(ends).tolist(),
-                                 physicsClientId=self.sim.client_id)
-        fractions = np.fromiter((r[2] for r in results), dtype=float, count=len(results))
+            starts[a:b] = position
+            np.matmul(scaled, rotation.T, out=ends[a:b])
+            ends[a:b] += position
+        # pybullet reads numpy arrays directly (no list conversion)
+        results = p.rayTestBatch(starts, ends, physicsClientId=self.sim.client_id) if len(starts) else ()
+        fractions = np.fromiter(map(_HIT_FRACTION, results), dtype=float, count=len(results))
         scans = []
         offset = 0
         for i, c in enumerate(self.configs):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -90,18 +91,79 @@ class GpsSample:
     satellites: int
 
 
-@dataclass(frozen=True)
 class GroundTruth:
-    """Noise-free state in PX4's frames (what HIL_STATE_QUATERNION carries)."""
+    """Noise-free state in PX4's frames (what HIL_STATE_QUATERNION carries). Immutable.
 
-    quaternion_ned_frd: np.ndarray        # (w, x, y, z), rotates FRD into NED
-    angular_velocity_frd_rad_s: np.ndarray
-    lat_e7: int
-    lon_e7: int
-    alt_mm: int
-    velocity_ned_m_s: np.ndarray
-    accel_ned_m_s2: np.ndarray            # coordinate acceleration (not specific force)
-    position_ned_m: np.ndarray
+    Built every step but evaluated lazily: the arrays and the geodetic position are computed
+    on first access, so a consumer that ignores the truth costs (almost) nothing. `raw` holds
+    the same values as plain-float tuples (quaternion, angular velocity, velocity,
+    acceleration, position) for per-step consumers that want to skip numpy.
+    """
+
+    def __init__(self, quaternion_ned_frd, angular_velocity_frd_rad_s, lat_e7: int, lon_e7: int, alt_mm: int,
+                 velocity_ned_m_s, accel_ned_m_s2, position_ned_m) -> None:
+        self.raw = (tuple(quaternion_ned_frd), tuple(angular_velocity_frd_rad_s), tuple(velocity_ned_m_s),
+                        tuple(accel_ned_m_s2), tuple(position_ned_m))
+        self._projection: Projection | None = None
+        self.__dict__.update(lat_e7=int(lat_e7), lon_e7=int(lon_e7), alt_mm=int(alt_mm))
+
+    @classmethod
+    def _lazy(cls, values: tuple, projection: Projection) -> GroundTruth:
+        truth = cls.__new__(cls)
+        truth.raw = values
+        truth._projection = projection
+        return truth
+
+    def __repr__(self) -> str:
+        return (f"GroundTruth(position_ned_m={self.raw[4]}, velocity_ned_m_s={self.raw[2]}, "
+                f"quaternion_ned_frd={self.raw[0]})")
+
+    @cached_property
+    def quaternion_ned_frd(self) -> np.ndarray:
+        """(w, x, y, z), rotates FRD into NED."""
+        return _readonly(self.raw[0])
+
+    @cached_property
+    def angular_velocity_frd_rad_s(self) -> np.ndarray:
+        return _readonly(self.raw[1])
+
+    @cached_property
+    def velocity_ned_m_s(self) -> np.ndarray:
+        return _readonly(self.raw[2])
+
+    @cached_property
+    def accel_ned_m_s2(self) -> np.ndarray:
+        """Coordinate acceleration (not specific force)."""
+        return _readonly(self.raw[3])
+
+    @cached_property
+    def position_ned_m(self) -> np.ndarray:
+        return _readonly(self.raw[4])
+
+    @cached_property
+    def _geodetic(self) -> tuple[int, int, int]:
+        assert self._projection is not None
+        lat, lon, alt = self._projection.to_geodetic(*self.raw[4])
+        return int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000.0))
+
+    @cached_property
+    def lat_e7(self) -> int:
+        return self._geodetic[0]
+
+    @cached_property
+    def lon_e7(self) -> int:
+        return self._geodetic[1]
+
+    @cached_property
+    def alt_mm(self) -> int:
+        """Altitude AMSL in mm."""
+        return self._geodetic[2]
+
+
+def _readonly(values) -> np.ndarray:
+    array = np.array(values, dtype=float)
+    array.flags.writeable = False
+    return array
 
 
 @dataclass
@@ -200,15 +262,8 @@ class SensorSuite:
         q_ned_frd = quat_enu_flu_to_ned_frd_t(q_enu_flu)
         pn, pe, pd = enu_to_ned_xyz(*position_enu)
         vn, ve, vd = enu_to_ned_xyz(*velocity_enu)
-        lat_deg, lon_deg, alt_m = self._projection.to_geodetic(pn, pe, pd)
-        truth = GroundTruth(
-            quaternion_ned_frd=np.array(q_ned_frd),
-            angular_velocity_frd_rad_s=np.array((gx, gy, gz)),
-            lat_e7=int(round(lat_deg * 1e7)), lon_e7=int(round(lon_deg * 1e7)), alt_mm=int(round(alt_m * 1000.0)),
-            velocity_ned_m_s=np.array((vn, ve, vd)),
-            accel_ned_m_s2=np.array(enu_to_ned_xyz(*accel_enu)),
-            position_ned_m=np.array((pn, pe, pd)),
-        )
+        truth = GroundTruth._lazy((q_ned_frd, (gx, gy, gz), (vn, ve, vd), enu_to_ned_xyz(*accel_enu), (pn, pe, pd)),
+                                  self._projection)
 
         mag = None
         if time_us >= self._next_mag_us:
@@ -221,6 +276,7 @@ class SensorSuite:
         baro = None
         if time_us >= self._next_baro_us:
             self._next_baro_us = time_us + self._baro_period_us
+            alt_m = self.home.alt_m - pd
             pressure_pa = isa_pressure_pa(alt_m) + self.noise.baro_pa * self._baro_noise.take()[0]
             baro = BaroSample(pressure_hpa=pressure_pa * 0.01,
                               temperature_c=isa_temperature_k(alt_m) - KELVIN_OFFSET,

@@ -5,6 +5,48 @@ metres in the world ENU frame (x east, y north, z up, origin on the ground at th
 position); yaw in degrees in the YAML (counter-clockwise from east, ENU) and radians here;
 speeds in m/s. The scenario's other top-level sections (`task:` for the envs, `train:` for the
 trainer) are kept raw as `errors.Node` so their owners validate them.
+
+The `world:` section, every key (optional ones show their default)::
+
+    world:
+      name: window                       # required
+      description: ""
+      home: {lat: 47.397742, lon: 8.545594, alt: 488.0, magnetic_year: 2025.5}
+      physics: {step_us: 4000, gravity: 9.8066, solver_iterations: 20,
+                hard_ground_speed: 2.0, crash_tilt: 60}   # ground contact faster / more tilted = crash
+      workspace: {min: [x, y, z], max: [x, y, z]}          # required; vehicles must stay inside
+      ground: true                       # infinite plane at z = 0
+      vehicles:                          # required, at least one
+        - name: drone0
+          model: iris                    # the only model
+          spawn: {position: [x, y, z], yaw: 90,            # body centre; z 0.06 rests on the ground
+                  randomize: {position: [dx, dy, dz], yaw: 10}}   # uniform +- per episode
+          goal: exit                     # name of a goal below
+          lidar: {horizontal: {rays: 35, fov: 360}, up: {rays: 6, fov: 90}, down: {rays: 6, fov: 90},
+                  range: 5.0, near: 1.0, crash: 0.4, filter_window: 1, flags: [horizontal, up]}
+      goals:
+        - {name: exit, center: [x, y, z], size: [sx, sy, sz],
+           randomize: {min: [x, y, z], max: [x, y, z]}}    # centre drawn uniformly per episode
+      obstacles:
+        - name: block                    # unique; reported in collisions
+          shape: box                     # box | cylinder | sphere | wall | mesh
+          size: [sx, sy, sz]             # box; wall: [length, thickness, height]; mesh: bounding box
+          radius: 0.5                    # cylinder, sphere
+          height: 2.0                    # cylinder
+          opening: {offset: 0, bottom: 1.8, width: 1.5, height: 1.2}   # wall only: a window
+          file: house.obj                # mesh only, relative to the YAML file
+          scale: [1, 1, 1]               # mesh only
+          position: [x, y, z]            # centre of the shape
+          yaw: 0
+          color: [r, g, b, a]
+          mass: 1.0                      # moving obstacles only
+          mover: {type: patrol, speed: 1.4, points: [[x, y, z], [x, y, z]]}     # or:
+          mover: {type: random_legs, speed: 8, min: [x, y, z], max: [x, y, z]}
+          randomize:                     # static obstacles only, per episode
+            along_path: {vehicle: drone0, fraction: [0.35, 0.65], lateral: 0.5}  # on spawn->goal line
+            position: [dx, dy, dz]       # uniform +- offset
+            yaw: 30                      # uniform +- degrees
+            variants: [{shape: box, size: [1, 1, 3]}, {shape: cylinder, radius: 0.5, height: 3}]
 """
 
 from __future__ import annotations

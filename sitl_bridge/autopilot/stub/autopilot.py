@@ -17,7 +17,7 @@ from .commander import Commander, Home, Output
 from .control import AttitudeControl, PositionControl, RateControl, body_z_to_attitude
 from .estimator import Estimate, GroundTruthEstimator, SensorEstimator
 from .mixer import QuadGeometry, QuadXMixer
-from .modes import CommandResult, LandedState
+from .modes import CommandResult, LandedState, system_id_for
 from .params import ParamTable
 
 if TYPE_CHECKING:
@@ -43,7 +43,7 @@ class StubAutopilot:
         self.instance = instance
         self.params = params if params is not None else ParamTable()
         if "MAV_SYS_ID" in self.params:
-            self.params.set("MAV_SYS_ID", 1 + instance)
+            self.params.set("MAV_SYS_ID", system_id_for(instance))
         self.ground_truth_estimate = ground_truth_estimate
         self.estimator = GroundTruthEstimator() if ground_truth_estimate else SensorEstimator()
         self.commander = Commander(self.params)

@@ -329,7 +329,7 @@ class Commander:
         self.failsafe_active = True
 
     def _auto_disarm_checks(self) -> None:
-        p = self.params
+        p = self.params.values
         since_landed_s = (self.time_us - self._landed_since_us) * 1e-6
         if self._flown_since_arming:
             if p["COM_DISARM_LAND"] > 0 and since_landed_s >= p["COM_DISARM_LAND"]:
@@ -348,7 +348,7 @@ class Commander:
     def _land_detector(self, e: Estimate, sp: Setpoint, thrust_collective: float) -> None:
         """PX4-like: ground contact (descent commanded, no vertical motion), then maybe landed
         (thrust forced low, still no motion), then landed; each stage a third of LNDMC_TRIG_TIME."""
-        p = self.params
+        p = self.params.values
         stage_us = p["LNDMC_TRIG_TIME"] * self._LAND_STAGE_FRACTION * 1e6
         vz_limit = p["LNDMC_Z_VEL_MAX"]
         v = e.velocity_ned_m_s
@@ -376,7 +376,7 @@ class Commander:
     # --- setpoints per mode ----------------------------------------------------------------------
     def _setpoint(self, e: Estimate) -> Setpoint:
         mode = (self.main_mode, self.sub_mode)
-        p = self.params
+        p = self.params.values
         if mode == OFFBOARD:
             o = self.offboard
             if _finite(o.yaw_rad):
@@ -401,7 +401,7 @@ class Commander:
 
     def _land_speed(self, e: Estimate) -> float:
         """MPC_LAND_SPEED near the ground, faster (up to MPC_Z_VEL_MAX_DN) above MPC_LAND_ALT2."""
-        p = self.params
+        p = self.params.values
         home_z = self.home.position_ned_m[2] if self.home else self._ground_z_m
         height = home_z - e.position_ned_m[2]
         slow, fast = p["MPC_LAND_SPEED"], max(p["MPC_Z_VEL_MAX_DN"], p["MPC_LAND_SPEED"])

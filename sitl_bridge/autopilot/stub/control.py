@@ -21,7 +21,6 @@ from .vec import (
     quat_from_two_vectors,
     quat_multiply,
     quat_normalize,
-    quat_rotate,
     quat_rotate_inverse,
 )
 
@@ -110,7 +109,7 @@ class PositionControl:
     def update(self, dt_s: float, sp: Setpoint, position_ned_m: Vec3, velocity_ned_m_s: Vec3,
                accel_ned_m_s2: Vec3) -> Vec3:
         """Thrust setpoint in NED, normalised (|thrust| = fraction of full collective thrust)."""
-        p = self.params
+        p = self.params.values
         # --- position P (+ velocity feed-forward), PX4 _positionControl
         vel_sp = [0.0, 0.0, 0.0]
         for k, gain in ((0, p["MPC_XY_P"]), (1, p["MPC_XY_P"]), (2, p["MPC_Z_P"])):
@@ -168,7 +167,7 @@ class PositionControl:
 
     def _acceleration_control(self, acc: Vec3) -> Vec3:
         """Acceleration setpoint -> thrust vector, tilt limited (PX4 _accelerationControl)."""
-        p = self.params
+        p = self.params.values
         n = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + GRAVITY_M_S2 * GRAVITY_M_S2)
         body_z = (-acc[0] / n, -acc[1] / n, GRAVITY_M_S2 / n)
         body_z = _limit_tilt(body_z, math.radians(p["MPC_TILTMAX_AIR"]))
@@ -186,36 +185,42 @@ class AttitudeControl:
 
     def update(self, q: Quat, q_sp: Quat, yaw_rate_ff_rad_s: float = 0.0) -> Vec3:
         """Body-rate setpoint (FRD, rad/s) from attitude q towards q_sp."""
-        p = self.params
+        p = self.params.values
         yaw_w = clamp(p["MC_YAW_WEIGHT"], 0.0, 1.0)
-        gains = (p["MC_ROLL_P"], p["MC_PITCH_P"], p["MC_YAW_P"] / yaw_w if yaw_w > 1e-4 else p["MC_YAW_P"])
-        e_z = quat_rotate(q, (0.0, 0.0, 1.0))
-        e_z_d = quat_rotate(q_sp, (0.0, 0.0, 1.0))
+        gain_yaw = p["MC_YAW_P"] / yaw_w if yaw_w > 1e-4 else p["MC_YAW_P"]
+        e_z = _body_z_in_world(q)
+        e_z_d = _body_z_in_world(q_sp)
         qd_red = quat_from_two_vectors(e_z, e_z_d)
         if abs(qd_red[1]) > 1.0 - 1e-5 or abs(qd_red[2]) > 1.0 - 1e-5:
             qd_red = q_sp  # upside down: the full attitude is the reduced attitude
         else:
             qd_red = quat_multiply(qd_red, q)
+        # the yaw left to do after the tilt, scaled down by the yaw weight
         q_mix = quat_normalize(quat_multiply(quat_conjugate(qd_red), q_sp))
         w = clamp(q_mix[0], -1.0, 1.0)
         z = clamp(q_mix[3], -1.0, 1.0)
         qd = quat_multiply(qd_red, (math.cos(yaw_w * math.acos(w)), 0.0, 0.0, math.sin(yaw_w * math.asin(z))))
-        qe = quat_normalize(quat_multiply(quat_conjugate(q), qd))
-        rates = [2.0 * qe[1] * gains[0], 2.0 * qe[2] * gains[1], 2.0 * qe[3] * gains[2]]
+        qe = quat_multiply(quat_conjugate(q), qd)
+        s = 2.0 if qe[0] >= 0.0 else -2.0   # canonical (shorter) error rotation
+        rx, ry, rz = s * qe[1] * p["MC_ROLL_P"], s * qe[2] * p["MC_PITCH_P"], s * qe[3] * gain_yaw
         if yaw_rate_ff_rad_s:
             zb = quat_rotate_inverse(q, (0.0, 0.0, 1.0))
-            for k in range(3):
-                rates[k] += zb[k] * yaw_rate_ff_rad_s
-        limits = (
-            math.radians(p["MC_ROLLRATE_MAX"]),
-            math.radians(p["MC_PITCHRATE_MAX"]),
-            math.radians(p["MC_YAWRATE_MAX"]),
-        )
-        return (
-            clamp(rates[0], -limits[0], limits[0]),
-            clamp(rates[1], -limits[1], limits[1]),
-            clamp(rates[2], -limits[2], limits[2]),
-        )
+            rx += zb[0] * yaw_rate_ff_rad_s
+            ry += zb[1] * yaw_rate_ff_rad_s
+            rz += zb[2] * yaw_rate_ff_rad_s
+        lr = p["MC_ROLLRATE_MAX"] * _DEG
+        lp = p["MC_PITCHRATE_MAX"] * _DEG
+        ly = p["MC_YAWRATE_MAX"] * _DEG
+        return (clamp(rx, -lr, lr), clamp(ry, -lp, lp), clamp(rz, -ly, ly))
+
+
+_DEG = math.pi / 180.0
+
+
+def _body_z_in_world(q: Quat) -> Vec3:
+    """Third column of the rotation matrix of q: the body z axis in the world frame."""
+    w, x, y, z = q
+    return (2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y))
 
 
 class RateControl:
@@ -238,7 +243,7 @@ class RateControl:
     def update(self, dt_s: float, rate_frd_rad_s: Vec3, rate_sp_frd_rad_s: Vec3, saturated: bool,
                landed: bool) -> Vec3:
         """Normalised torque (roll, pitch, yaw) in about [-1, 1]."""
-        p = self.params
+        p = self.params.values
         kp = (p["MC_ROLLRATE_P"], p["MC_PITCHRATE_P"], p["MC_YAWRATE_P"])
         ki = (p["MC_ROLLRATE_I"], p["MC_PITCHRATE_I"], p["MC_YAWRATE_I"])
         kd = (p["MC_ROLLRATE_D"], p["MC_PITCHRATE_D"], p["MC_YAWRATE_D"])

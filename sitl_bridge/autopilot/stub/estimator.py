@@ -78,6 +78,11 @@ NO_TRUTH = GroundTruth(
 )
 
 
+def _floats(v) -> list[float]:
+    """Python floats of a 3-vector (numpy arrays index slowly element by element)."""
+    return v.tolist() if hasattr(v, "tolist") else [float(x) for x in v]
+
+
 class GroundTruthEstimator:
     """Estimate = SensorFrame.truth. Labelled as such: PX4 never sees ground truth."""
 
@@ -98,15 +103,12 @@ class GroundTruthEstimator:
             e.origin = (t.lat_e7 * 1e-7, t.lon_e7 * 1e-7, t.alt_mm * 1e-3)
         o = self._origin_ned
         e.time_us = frame.time_us
-        e.position_ned_m = (float(pos[0]) - o[0], float(pos[1]) - o[1], float(pos[2]) - o[2])
-        v = t.velocity_ned_m_s
-        e.velocity_ned_m_s = (float(v[0]), float(v[1]), float(v[2]))
-        a = t.accel_ned_m_s2
-        e.accel_ned_m_s2 = (float(a[0]), float(a[1]), float(a[2]))
-        q = t.quaternion_ned_frd
-        e.quaternion_ned_frd = (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
-        w = t.angular_velocity_frd_rad_s
-        e.angular_velocity_frd_rad_s = (float(w[0]), float(w[1]), float(w[2]))
+        px, py, pz = _floats(pos)
+        e.position_ned_m = (px - o[0], py - o[1], pz - o[2])
+        e.velocity_ned_m_s = tuple(_floats(t.velocity_ned_m_s))  # type: ignore[assignment]
+        e.accel_ned_m_s2 = tuple(_floats(t.accel_ned_m_s2))  # type: ignore[assignment]
+        e.quaternion_ned_frd = tuple(_floats(t.quaternion_ned_frd))  # type: ignore[assignment]
+        e.angular_velocity_frd_rad_s = tuple(_floats(t.angular_velocity_frd_rad_s))  # type: ignore[assignment]
         e.lat_deg = t.lat_e7 * 1e-7
         e.lon_deg = t.lon_e7 * 1e-7
         e.alt_amsl_m = t.alt_mm * 1e-3
@@ -130,6 +132,8 @@ class SensorEstimator:
     ACC_KP = 0.4
     MAG_KP = 0.3
     GYRO_BIAS_KI = 0.01
+    ALIGN_S = 3.0                  # fast initial alignment: gains x ALIGN_BOOST for this long
+    ALIGN_BOOST = 10.0
     # position filter: gains per GPS update for position, velocity, accel bias
     GPS_POS_GAIN = 0.25
     GPS_VEL_GAIN = 0.35
@@ -137,6 +141,8 @@ class SensorEstimator:
     ACC_BIAS_GAIN = 0.02
     BARO_GAIN_PER_S = 2.0          # 1/s pull of the height to the baro height
     BARO_VEL_GAIN_PER_S = 0.5
+    BARO_OFFSET_SAMPLES = 25       # GPS samples averaged for the baro-to-GPS height offset,
+    BARO_OFFSET_GAIN = 0.01        # then tracked slowly (baro drift)
     MIN_GPS_FIX = 3
     MIN_GPS_SATELLITES = 6
 
@@ -150,6 +156,9 @@ class SensorEstimator:
         self._last_time_us: int | None = None
         self._baro_offset_m: float | None = None   # baro altitude - GPS altitude at origin
         self._last_baro_us: int | None = None
+        self._last_baro_alt_m: float | None = None
+        self._baro_offset_samples = 0
+        self._align_until_us: int | None = None
         self._accel_lp: Vec3 = (0.0, 0.0, 0.0)
         # kinematic acceleration from GPS velocity differences: the accelerometer measures
         # gravity minus this, so the tilt correction must not mistake it for a tilt
@@ -161,14 +170,15 @@ class SensorEstimator:
         """Fold one SensorFrame into the estimate."""
         dt = 0.0 if self._last_time_us is None else (frame.time_us - self._last_time_us) * 1e-6
         self._last_time_us = frame.time_us
-        acc_b = (float(frame.accel_frd_m_s2[0]), float(frame.accel_frd_m_s2[1]), float(frame.accel_frd_m_s2[2]))
-        gyro = frame.gyro_frd_rad_s
+        ax, ay, az = _floats(frame.accel_frd_m_s2)
+        acc_b = (ax, ay, az)
+        gx, gy, gz = _floats(frame.gyro_frd_rad_s)
         gb = self._gyro_bias
-        w = (float(gyro[0]) - gb[0], float(gyro[1]) - gb[1], float(gyro[2]) - gb[2])
+        w = (gx - gb[0], gy - gb[1], gz - gb[2])
         if self._q is None:
             self._q = self._initial_attitude(acc_b, frame.mag_frd_gauss)
         if dt > 0.0:
-            self._attitude_step(dt, acc_b, w, frame.mag_frd_gauss)
+            self._attitude_step(dt, acc_b, w, frame.mag_frd_gauss, frame.time_us)
         q = self._q
         e = self.estimate
         e.time_us = frame.time_us
@@ -180,21 +190,26 @@ class SensorEstimator:
         f_ned = quat_rotate(q, acc_b)
         ab = self._acc_bias_ned
         acc_ned = (f_ned[0] - ab[0], f_ned[1] - ab[1], f_ned[2] + GRAVITY_M_S2 - ab[2])
-        if e.position_valid and dt > 0.0:
+        if e.origin is not None and dt > 0.0:
+            pos, vel = self._pos, self._vel
             for k in range(3):
-                self._pos[k] += (self._vel[k] + 0.5 * acc_ned[k] * dt) * dt
-                self._vel[k] += acc_ned[k] * dt
+                pos[k] += (vel[k] + 0.5 * acc_ned[k] * dt) * dt
+                vel[k] += acc_ned[k] * dt
         lp = self._accel_lp
-        self._accel_lp = tuple(lp[k] + 0.2 * (acc_ned[k] - lp[k]) for k in range(3))  # type: ignore[assignment]
+        self._accel_lp = (lp[0] + 0.2 * (acc_ned[0] - lp[0]), lp[1] + 0.2 * (acc_ned[1] - lp[1]),
+                          lp[2] + 0.2 * (acc_ned[2] - lp[2]))
 
         gps = frame.gps
         if gps is not None:
             self._gps_update(e, gps)
         baro = frame.baro
-        if baro is not None and e.position_valid and dt > 0.0:
+        if baro is not None and e.origin is not None and dt > 0.0:
             # PX4 ignores HIL_SENSOR.pressure_alt: height comes from the pressure itself
             self._baro_update(pressure_altitude_m(baro.pressure_hpa * 100.0), frame.time_us)
 
+        # like EKF2, report a usable position only once the attitude has aligned
+        e.position_valid = e.origin is not None and self._align_until_us is not None \
+            and frame.time_us >= self._align_until_us
         e.position_ned_m = (self._pos[0], self._pos[1], self._pos[2])
         e.velocity_ned_m_s = (self._vel[0], self._vel[1], self._vel[2])
         e.accel_ned_m_s2 = self._accel_lp
@@ -217,9 +232,13 @@ class SensorEstimator:
             yaw = -math.atan2(m[1], m[0])
         return quat_from_euler(roll, pitch, yaw)
 
-    def _attitude_step(self, dt: float, acc_b: Vec3, w: Vec3, mag) -> None:
+    def _attitude_step(self, dt: float, acc_b: Vec3, w: Vec3, mag, time_us: int) -> None:
         q = self._q
         corr = [0.0, 0.0, 0.0]
+        if self._align_until_us is None:
+            self._align_until_us = time_us + int(self.ALIGN_S * 1e6)
+        boost = self.ALIGN_BOOST if time_us < self._align_until_us else 1.0
+        acc_kp, mag_kp = self.ACC_KP * boost, self.MAG_KP * boost
         a_norm = math.sqrt(acc_b[0] ** 2 + acc_b[1] ** 2 + acc_b[2] ** 2)
         # trust the accelerometer's gravity direction only near 1 g
         ga = self._gps_accel_ned
@@ -229,15 +248,16 @@ class SensorEstimator:
             up_meas = (acc_b[0] / a_norm, acc_b[1] / a_norm, acc_b[2] / a_norm)  # specific force points up
             up_est = quat_rotate_inverse(q, (ref[0] / ref_norm, ref[1] / ref_norm, ref[2] / ref_norm))
             # error = measured x estimated
-            corr[0] += self.ACC_KP * (up_meas[1] * up_est[2] - up_meas[2] * up_est[1])
-            corr[1] += self.ACC_KP * (up_meas[2] * up_est[0] - up_meas[0] * up_est[2])
-            corr[2] += self.ACC_KP * (up_meas[0] * up_est[1] - up_meas[1] * up_est[0])
+            corr[0] += acc_kp * (up_meas[1] * up_est[2] - up_meas[2] * up_est[1])
+            corr[1] += acc_kp * (up_meas[2] * up_est[0] - up_meas[0] * up_est[2])
+            corr[2] += acc_kp * (up_meas[0] * up_est[1] - up_meas[1] * up_est[0])
         if mag is not None:
-            m_ned = quat_rotate(q, (float(mag[0]), float(mag[1]), float(mag[2])))
+            mx, my, mz = _floats(mag)
+            m_ned = quat_rotate(q, (mx, my, mz))
             # heading error about world down, applied in body frame
             heading_err = wrap_pi(self._declination_rad - math.atan2(m_ned[1], m_ned[0]))
             zb = quat_rotate_inverse(q, (0.0, 0.0, 1.0))
-            k = self.MAG_KP * heading_err
+            k = mag_kp * heading_err
             corr[0] += zb[0] * k
             corr[1] += zb[1] * k
             corr[2] += zb[2] * k
@@ -272,7 +292,6 @@ class SensorEstimator:
             e.origin = (lat, lon, alt)
             self._pos = [0.0, 0.0, 0.0]
             self._vel = list(vel)
-            e.position_valid = True
             # true heading = magnetic heading + declination (PX4 looks it up in the WMM too)
             n, east, _ = magnetic_field_ned_gauss(GeoHome(lat_deg=lat, lon_deg=lon, alt_m=alt))
             self._declination_rad = math.atan2(east, n)
@@ -286,6 +305,11 @@ class SensorEstimator:
             math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)),
             alt0 - alt,
         )
+        if self._last_baro_alt_m is not None and self._baro_offset_m is not None:
+            # the baro's zero is tied to GPS height: averaged at first, then tracked slowly
+            n = self._baro_offset_samples = self._baro_offset_samples + 1
+            gain = 1.0 / n if n <= self.BARO_OFFSET_SAMPLES else self.BARO_OFFSET_GAIN
+            self._baro_offset_m += gain * (self._last_baro_alt_m + meas[2] - self._baro_offset_m)
         # horizontal from GPS; vertical position from baro (PX4 EKF2_HGT_REF=baro), velocity from GPS
         for k in range(3):
             if k < 2 or self._baro_offset_m is None:
@@ -299,6 +323,7 @@ class SensorEstimator:
     def _baro_update(self, pressure_alt_m: float, time_us: int) -> None:
         last = self._last_baro_us
         self._last_baro_us = time_us
+        self._last_baro_alt_m = pressure_alt_m
         if self._baro_offset_m is None or last is None:
             self._baro_offset_m = pressure_alt_m + self._pos[2]   # baro alt at local z = 0
             return

@@ -33,6 +33,7 @@ from sitl_bridge import mavlink
 from sitl_bridge.sensors import BaroSample, GpsSample, GroundTruth, SensorFrame
 
 from .estimator import NO_TRUTH
+from .modes import system_id_for
 
 if TYPE_CHECKING:
     from .autopilot import StubAutopilot
@@ -96,7 +97,7 @@ class HilClient:
         self.stats = HilClientStats()
         self._sock: socket.socket | None = None
         self._parser = mavlink.FrameParser()
-        self._encoder = mavlink.FrameEncoder(1 + self.instance, 1)
+        self._encoder = mavlink.FrameEncoder(system_id_for(self.instance), 1)
         self._truth: GroundTruth | None = None
         self._truth_origin: tuple[float, float, float] | None = None
         self.last_time_usec = 0

@@ -16,7 +16,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import select
 import socket
+import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,8 +27,8 @@ from typing import TYPE_CHECKING
 from sitl_bridge import mavlink
 
 from . import telemetry
-from .modes import CommandResult
-from .params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, wire_to_value
+from .modes import CommandResult, system_id_for
+from .params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, decode_param_value
 from .telemetry import MessagePacker
 from .vec import quat_rotate
 
@@ -53,6 +55,7 @@ _NAN = float("nan")
 
 _CMD_STRUCT_LONG = d.MAVLink_command_long_message.unpacker
 _CMD_STRUCT_INT = d.MAVLink_command_int_message.unpacker
+_PARAM_VALUE_TAIL = struct.Struct("<HH16sB")   # PARAM_VALUE after param_value
 
 
 @dataclass
@@ -114,7 +117,7 @@ class MavlinkApi:
                  keepalive_wall_s: float = KEEPALIVE_WALL_S, clock: Callable[[], float] = time.monotonic) -> None:
         self.autopilot = autopilot
         self.instance = autopilot.instance if instance is None else instance
-        self.system_id = 1 + self.instance
+        self.system_id = system_id_for(self.instance)
         self.component_id = 1
         self.stats = ApiStats()
         self._packer = MessagePacker(self.system_id, self.component_id)
@@ -135,6 +138,9 @@ class MavlinkApi:
             self.close()
             raise
         self._last_stream_time_us: int | None = None
+        self._next_due_any_us = -1        # earliest stream deadline over all links
+        self._poll: select.poll | None = None
+        self._link_by_fd: dict[int, _Link] = {}
         self._last_heartbeat_wall = -math.inf
         self._texts_sent = 0
         self._handlers: dict[int, Callable[[_Link, mavlink.Frame, tuple[str, int]], None]] = {
@@ -173,8 +179,16 @@ class MavlinkApi:
     # --- pump -----------------------------------------------------------------------------------
     def pump(self) -> None:
         """Read and handle every waiting datagram, then send the streams that are due."""
-        for link in self.links:
-            self._receive(link)
+        if self._poll is None:
+            self._poll = select.poll()
+            self._link_by_fd = {link.sock.fileno(): link for link in self.links}
+            for fd in self._link_by_fd:
+                self._poll.register(fd, select.POLLIN)
+        # one poll syscall instead of a failing recv per socket and step
+        for fd, _events in self._poll.poll(0):
+            link = self._link_by_fd.get(fd)
+            if link is not None:
+                self._receive(link)
         self._send_streams()
         for link in self.links:
             self._flush(link)
@@ -245,8 +259,11 @@ class MavlinkApi:
     def _send_streams(self) -> None:
         now_us = self.autopilot.time_us
         wall = self._clock()
-        if now_us != self._last_stream_time_us:
+        last = self._last_stream_time_us
+        texts = self.autopilot.commander.status_texts
+        if now_us != last and (now_us >= self._next_due_any_us or last is None or now_us < last or texts):
             self._last_stream_time_us = now_us
+            next_any = now_us + 10**9
             for link in self.links:
                 due = link.next_due_us
                 for msgid, interval in link.intervals_us.items():
@@ -258,7 +275,12 @@ class MavlinkApi:
                     due[msgid] = t + interval if on_grid else now_us + interval
                     if self.send_now(msgid, link) and msgid == d.MAVLINK_MSG_ID_HEARTBEAT:
                         self._last_heartbeat_wall = wall
+                if due:
+                    next_any = min(next_any, min(due.values()))
+            self._next_due_any_us = next_any
             self._send_status_texts()
+        elif now_us != last:
+            self._last_stream_time_us = now_us
         if wall - self._last_heartbeat_wall >= self._keepalive_wall_s:
             # simulated time is frozen (or crawling): keep MAVSDK's 3 s wall timeout at bay
             self.send_now(d.MAVLINK_MSG_ID_HEARTBEAT)
@@ -362,14 +384,17 @@ class MavlinkApi:
         else:
             link.intervals_us[msgid] = interval
         link.next_due_us.pop(msgid, None)
+        self._next_due_any_us = -1
         return CommandResult.ACCEPTED
 
     # parameters ---------------------------------------------------------------------------------
     def _param_value(self, link: _Link, param: Param) -> None:
+        # packed by hand so INT32 bits reach the wire untouched (see encode_param_value)
         table = self.autopilot.params
-        self._queue(link, d.MAVLink_param_value_message,
-                    dict(param_id=param.name.encode(), param_value=param.wire_value, param_type=param.param_type,
-                         param_count=len(table), param_index=table.index_of(param.name)))
+        payload = param.wire_bytes + _PARAM_VALUE_TAIL.pack(
+            len(table), table.index_of(param.name), param.name.encode(), param.param_type)
+        link.outbox.append(self._packer.encoder.frame(
+            d.MAVLINK_MSG_ID_PARAM_VALUE, d.MAVLink_param_value_message.crc_extra, payload))
 
     def _on_param_request_list(self, link: _Link, frame: mavlink.Frame, _address) -> None:
         ts, tc = mavlink.unpack_payload(frame)
@@ -393,7 +418,7 @@ class MavlinkApi:
         self._flush(link)
 
     def _on_param_set(self, link: _Link, frame: mavlink.Frame, _address) -> None:
-        wire_value, ts, tc, raw_id, param_type = mavlink.unpack_payload(frame)
+        _value, ts, tc, raw_id, param_type = mavlink.unpack_payload(frame)
         if not self._for_us(ts, tc):
             return
         table = self.autopilot.params
@@ -402,7 +427,7 @@ class MavlinkApi:
             return
         if param_type not in (MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32):
             param_type = param.param_type
-        value = wire_to_value(wire_value, param_type)
+        value = decode_param_value(frame.payload, param_type)
         with contextlib.suppress(ValueError):
             table.set(param.name, value)
             self.stats.param_sets += 1

@@ -64,3 +64,9 @@ TAKEOFF = (MainMode.AUTO, AutoSubMode.TAKEOFF)
 LAND = (MainMode.AUTO, AutoSubMode.LAND)
 RTL = (MainMode.AUTO, AutoSubMode.RTL)
 OFFBOARD = (MainMode.OFFBOARD, 0)
+
+
+def system_id_for(instance: int) -> int:
+    """MAVLink system id of vehicle instance i: 1 + i like PX4 (MAV_SYS_ID), wrapped into
+    1..254 because the id is one byte (test instances go up to 2000)."""
+    return 1 + instance % 254

@@ -116,32 +116,36 @@ PX4_DEFAULTS: dict[str, tuple[float, int]] = {
 }
 
 
-def float_to_wire(value: float, param_type: int) -> float:
-    """Value as it travels in PARAM_VALUE.param_value: PX4 copies INT32 bits into the float."""
+def encode_param_value(value: float, param_type: int) -> bytes:
+    """The 4 bytes of PARAM_VALUE.param_value: PX4 copies INT32 bits into the float field.
+
+    Bytes, not a Python float: an int whose bits form a signalling NaN would be altered by a
+    float round trip (CPUs quiet NaNs when widening to double)."""
     if param_type == MAV_PARAM_TYPE_INT32:
-        return struct.unpack("<f", struct.pack("<i", int(value)))[0]
-    return float(value)
+        return struct.pack("<i", int(value))
+    return struct.pack("<f", value)
 
 
-def wire_to_value(wire_value: float, param_type: int) -> float:
-    """Inverse of `float_to_wire`: decode a PARAM_SET.param_value."""
+def decode_param_value(raw: bytes, param_type: int) -> float:
+    """Inverse of `encode_param_value` for the first 4 bytes of a PARAM_SET/PARAM_VALUE payload."""
     if param_type == MAV_PARAM_TYPE_INT32:
-        return float(struct.unpack("<i", struct.pack("<f", wire_value))[0])
-    return float(wire_value)
+        return float(struct.unpack_from("<i", raw)[0])
+    return float(struct.unpack_from("<f", raw)[0])
 
 
 @dataclass
 class Param:
-    """One parameter: PX4 name (at most 16 chars), value, MAV_PARAM_TYPE."""
+    """One parameter: PX4 name (at most 16 chars), value, MAV_PARAM_TYPE. Change values through
+    `ParamTable.set` (it keeps the fast `values` view in step)."""
 
     name: str
     value: float
     param_type: int
 
     @property
-    def wire_value(self) -> float:
-        """The float PX4 would put in PARAM_VALUE (bytewise for INT32)."""
-        return float_to_wire(self.value, self.param_type)
+    def wire_bytes(self) -> bytes:
+        """param_value as PX4 puts it in PARAM_VALUE (bytewise for INT32)."""
+        return encode_param_value(self.value, self.param_type)
 
 
 class ParamTable:
@@ -158,6 +162,8 @@ class ParamTable:
                  *, px4_params_dir: Path | None = PX4_PARAMS_DIR, speed_factor: float | None = None) -> None:
         self._params: dict[str, Param] = {}
         self._names: list[str] = []
+        #: name -> value, kept in step with the table: the controllers' fast read path
+        self.values: dict[str, float] = {}
         for name, (value, param_type) in (defaults if defaults is not None else PX4_DEFAULTS).items():
             self._add(name, value, param_type)
         if px4_params_dir is not None:
@@ -173,6 +179,9 @@ class ParamTable:
                     self._add(entry.name, value, known.param_type if known else entry.param_type)
 
     def _add(self, name: str, value: float, param_type: int) -> None:
+        if param_type == MAV_PARAM_TYPE_INT32:
+            value = float(int(value))
+        self.values[name] = float(value)
         if name in self._params:
             self._params[name].value = float(value)
             self._params[name].param_type = param_type
@@ -190,7 +199,7 @@ class ParamTable:
         return (self._params[n] for n in self._names)
 
     def __getitem__(self, name: str) -> float:
-        return self._params[name].value
+        return self.values[name]
 
     def get(self, name: str) -> Param | None:
         """The Param called `name`, or None."""
@@ -210,6 +219,7 @@ class ParamTable:
         if not math.isfinite(value):
             raise ValueError(f"{name}: value must be finite, got {value}")
         param.value = float(int(value)) if param.param_type == MAV_PARAM_TYPE_INT32 else float(value)
+        self.values[name] = param.value
         return param
 
     def add(self, name: str, value: float, param_type: int) -> Param:

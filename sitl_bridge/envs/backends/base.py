@@ -5,8 +5,9 @@ setpoints for exact spans of simulated time; between calls the simulation is hel
 moves) while the agent decides. Every backend implements the same setpoint sequence per
 simulated step, so `direct` and `stub` agree on the same seed and actions:
 
-1. `reset(seed)`: in place, simulated time 0, every vehicle re-spawned (randomised per the
-   world) on the ground; then the episode start, observed rather than timed: arm as soon as
+1. `reset(seed)`: in place (the episode clock restarts at 0), every vehicle re-spawned
+   (randomised per the world, from `seed`) on the ground, autopilots fresh, sensor noise
+   re-seeded; then the episode start, observed rather than timed: arm as soon as
    the autopilot accepts (retried every `ARM_POLL_S`), take off to the task's start altitude
    (PX4's AUTO.TAKEOFF with MIS_TAKEOFF_ALT), wait until in the air, in HOLD and within
    `TAKEOFF_TOLERANCE_M` of it, switch to offboard with a zero-velocity setpoint and let it
@@ -47,6 +48,7 @@ class Snapshot:
     """Everything the env reads from a backend after `reset` or `fly` (ground truth)."""
 
     time_us: int
+    """Simulated time since this episode's reset began (the episode start included)."""
     states: tuple[VehicleState, ...]
     scans: tuple[LidarScan, ...]
     collided: tuple[bool, ...]

@@ -51,7 +51,7 @@ class DirectBackend:
         self.world = world
         self.num_drones = world.num_vehicles
         self.start_altitude_m = float(start_altitude_m)
-        self.sim = Simulation(world, seed=seed, gui=gui)
+        self.sim = Simulation(world, seed=seed, step_us=None, gui=gui)  # world's step, as SimSession
         self.lidar = Lidar(self.sim, [v.lidar for v in world.vehicles])
         self.sensors = [SensorSuite(world.home, seed=sensor_seed(seed, i), step_us=self.sim.step_us)
                         for i in range(self.num_drones)]

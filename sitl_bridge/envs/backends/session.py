@@ -21,6 +21,7 @@ Reset between episodes:
 from __future__ import annotations
 
 import contextlib
+import tempfile
 from collections.abc import Sequence
 
 import numpy as np
@@ -52,8 +53,11 @@ class SessionBackend:
         self.world = world
         self.num_drones = world.num_vehicles
         self.start_altitude_m = float(start_altitude_m)
+        # PX4 keeps its working directories and logs here across restarts; removed on close.
+        self._run_dir = tempfile.TemporaryDirectory(prefix="sitl-bridge-env-") if autopilot == "px4" else None
         self._options = dict(autopilot=autopilot, speed_factor=speed_factor,
-                             instance_base=instance_base, px4_bin=px4_bin, gui=gui)
+                             instance_base=instance_base, px4_bin=px4_bin, gui=gui,
+                             run_dir=self._run_dir.name if self._run_dir is not None else None)
         self._seed = seed
         self.session: SimSession | None = None
         self.fleet: Fleet | None = None
@@ -91,6 +95,8 @@ class SessionBackend:
         if not self._closed:
             self._closed = True
             self._stop()
+            if self._run_dir is not None:
+                self._run_dir.cleanup()
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _session(self) -> SimSession:

@@ -1,0 +1,152 @@
+"""The typed records the simulation hands out: motor commands in, vehicle state and collisions out."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from sitl_bridge.frames import (
+    enu_to_ned_xyz,
+    flu_to_frd_xyz,
+    quat_enu_flu_to_ned_frd_t,
+    quat_to_euler_t,
+)
+
+
+@dataclass(frozen=True)
+class MotorCommand:
+    """Motor inputs of one vehicle for one step (what HIL_ACTUATOR_CONTROLS carries)."""
+
+    controls: tuple[float, float, float, float]  # PX4 motors 1..4 (quad-X order), each in [0, 1]
+    armed: bool                                  # False -> rotors spin down to 0
+
+    @staticmethod
+    def disarmed() -> MotorCommand:
+        """All motors off, disarmed."""
+        return _DISARMED
+
+
+_DISARMED = MotorCommand((0.0, 0.0, 0.0, 0.0), False)
+
+
+@dataclass(frozen=True)
+class Collision:
+    """One contact reported for the last step.
+
+    kind: "obstacle" (other = obstacle name), "vehicle" (other = the other vehicle's name) or
+    "ground" (other = "ground"; only hard contacts: faster than the world's
+    `hard_ground_speed_m_s` or tilted beyond `crash_tilt_deg`, so resting/landing is not one).
+    """
+
+    vehicle: int
+    kind: str
+    other: str
+    speed_m_s: float
+    time_us: int
+
+
+def _readonly(values) -> np.ndarray:
+    array = np.array(values, dtype=float)
+    array.flags.writeable = False
+    return array
+
+
+class VehicleState:
+    """Vehicle state after a step: world ENU, body FLU; NED/FRD views as properties.
+
+    Immutable. The arrays are built on first access from the plain-float tuples in `raw`
+    (position, quaternion, velocity, angular velocity, specific force, acceleration), which
+    per-step consumers such as `SensorSuite` read directly to skip numpy.
+    """
+
+    def __init__(self, position_enu_m, quaternion_enu_flu, velocity_enu_m_s, angular_velocity_flu_rad_s,
+                 specific_force_flu_m_s2, rotor_speeds_rad_s, acceleration_enu_m_s2=(0.0, 0.0, 0.0),
+                 on_ground: bool = False) -> None:
+        def floats(values) -> tuple[float, ...]:
+            return tuple(float(c) for c in values)
+
+        self.raw: tuple[tuple[float, ...], ...] = (
+            floats(position_enu_m), floats(quaternion_enu_flu), floats(velocity_enu_m_s),
+            floats(angular_velocity_flu_rad_s), floats(specific_force_flu_m_s2), floats(acceleration_enu_m_s2))
+        self._rotor_speeds = floats(rotor_speeds_rad_s)
+        self.on_ground = bool(on_ground)  # touching the ground plane this step
+
+    @classmethod
+    def _from_tuples(cls, raw: tuple, rotor_speeds: tuple[float, ...], on_ground: bool) -> VehicleState:
+        state = cls.__new__(cls)
+        state.raw = raw
+        state._rotor_speeds = rotor_speeds
+        state.on_ground = on_ground
+        return state
+
+    def __repr__(self) -> str:
+        names = ("position_enu_m", "quaternion_enu_flu", "velocity_enu_m_s", "angular_velocity_flu_rad_s",
+                 "specific_force_flu_m_s2", "acceleration_enu_m_s2")
+        parts = [f"{n}={tuple(round(c, 4) for c in r)}" for n, r in zip(names, self.raw, strict=True)]
+        return f"VehicleState({', '.join(parts)}, on_ground={self.on_ground})"
+
+    # -- contract fields (ENU / FLU) --------------------------------------------------------
+    @cached_property
+    def position_enu_m(self) -> np.ndarray:
+        return _readonly(self.raw[0])
+
+    @cached_property
+    def quaternion_enu_flu(self) -> np.ndarray:
+        """(w, x, y, z), rotates FLU vectors into ENU."""
+        return _readonly(self.raw[1])
+
+    @cached_property
+    def velocity_enu_m_s(self) -> np.ndarray:
+        return _readonly(self.raw[2])
+
+    @cached_property
+    def angular_velocity_flu_rad_s(self) -> np.ndarray:
+        return _readonly(self.raw[3])
+
+    @cached_property
+    def specific_force_flu_m_s2(self) -> np.ndarray:
+        """What an ideal accelerometer reads (at rest: +g along body up)."""
+        return _readonly(self.raw[4])
+
+    @cached_property
+    def acceleration_enu_m_s2(self) -> np.ndarray:
+        """Coordinate acceleration over the last step (extension of the contract)."""
+        return _readonly(self.raw[5])
+
+    @cached_property
+    def rotor_speeds_rad_s(self) -> np.ndarray:
+        """PX4 motor order 1..4."""
+        return _readonly(self._rotor_speeds)
+
+    # -- PX4 views (NED / FRD) ---------------------------------------------------------------
+    @cached_property
+    def position_ned_m(self) -> np.ndarray:
+        return _readonly(enu_to_ned_xyz(*self.raw[0]))
+
+    @cached_property
+    def velocity_ned_m_s(self) -> np.ndarray:
+        return _readonly(enu_to_ned_xyz(*self.raw[2]))
+
+    @cached_property
+    def acceleration_ned_m_s2(self) -> np.ndarray:
+        return _readonly(enu_to_ned_xyz(*self.raw[5]))
+
+    @cached_property
+    def quaternion_ned_frd(self) -> np.ndarray:
+        """(w, x, y, z), rotates FRD vectors into NED (PX4's attitude)."""
+        return _readonly(quat_enu_flu_to_ned_frd_t(self.raw[1]))
+
+    @cached_property
+    def euler_ned_frd_rad(self) -> np.ndarray:
+        """(roll, pitch, yaw) as PX4 reports them (yaw from north, clockwise)."""
+        return _readonly(quat_to_euler_t(quat_enu_flu_to_ned_frd_t(self.raw[1])))
+
+    @cached_property
+    def angular_velocity_frd_rad_s(self) -> np.ndarray:
+        return _readonly(flu_to_frd_xyz(*self.raw[3]))
+
+    @cached_property
+    def specific_force_frd_m_s2(self) -> np.ndarray:
+        return _readonly(flu_to_frd_xyz(*self.raw[4]))

@@ -1,0 +1,112 @@
+"""The same flight against a real PX4 SITL (v1.16 `px4_sitl_default`): PX4 connects to our
+simulator like to Gazebo, and the unchanged OffboardClient flies it through MAVSDK.
+Skipped without PX4_BIN (the `px4_bin` fixture)."""
+
+from __future__ import annotations
+
+import pytest
+from test_session import ports_released
+
+from sitl_bridge.client import Fleet, OffboardClient
+from sitl_bridge.client.demo import DEMO_ACTIONS, fly_leg
+from sitl_bridge.session import SimSession
+
+pytestmark = pytest.mark.px4
+
+
+def _free_px4_instance() -> int:
+    """PX4 sends its API link to 14540+i only for i <= 9 (px4-rc.mavlink)."""
+    from conftest import instance_ports_free
+
+    for instance in range(9, -1, -1):
+        if instance_ports_free(instance):
+            return instance
+    pytest.skip("no free PX4 instance in 0..9")
+
+
+def test_px4_flies_the_offboard_demo(px4_bin: str, tmp_path) -> None:
+    instance = _free_px4_instance()
+    # F = 5, not 0: PX4 takes each new setpoint in its own MAVLink receiver thread, in wall
+    # time; on a loaded machine a few ms of wall latency are tenths of a simulated second at
+    # full speed, which is noise in the 0.25 m displacement check.
+    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=5, instance_base=instance,
+                    run_dir=tmp_path) as session:
+        with Fleet.for_session(session) as fleet:
+            client = fleet[0]
+            assert client.autopilot_type() == "PX4"
+            client.wait_healthy(timeout_s=60)
+            assert all(client.health().values()), client.health()
+            assert client.get_param_float("MIS_TAKEOFF_ALT") == pytest.approx(2.5)
+            # px4_params: 1 s of wall time, so 5 s of PX4 time at F = 5 (PX4 measures PX4 time).
+            assert client.get_param_float("COM_OF_LOSS_T") == pytest.approx(5.0)
+            client.set_param_float("COM_OF_LOSS_T", 2.0)
+            assert client.get_param_float("COM_OF_LOSS_T") == pytest.approx(2.0)
+            client.arm()
+            assert client.takeoff(2.5) == pytest.approx(2.5, abs=0.3)
+            assert client.flight_mode() == "HOLD"
+            client.start_offboard()
+            for action in DEMO_ACTIONS:
+                (leg,) = fly_leg(fleet, action)
+                assert leg.error_m <= 0.25, leg.line()
+                assert client.flight_mode() == "OFFBOARD"
+        # The client is gone, its setpoint stream too: PX4's offboard-loss failsafe (Hold).
+        session.run_for(3.0)
+        with OffboardClient(instance, clock=session, url=session.api_urls[0]) as observer:
+            observer.wait_until(lambda: observer.flight_mode() == "HOLD", "failsafe Hold", 5.0)
+            assert observer.armed() and observer.in_air()
+            observer.land()
+            assert not observer.armed()
+    assert ports_released(instance)
+
+
+def _px4_pids(px4_bin: str, instance: int) -> list[int]:
+    """Live PX4 processes started from `px4_bin` for `instance`."""
+    import os
+    from pathlib import Path
+
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z" and argv[:3] == [os.fsencode(px4_bin), b"-i", str(instance).encode()]:
+            pids.append(int(entry.name))
+    return pids
+
+
+def test_ctrl_c_stops_px4_and_frees_its_ports(px4_bin: str) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    instance = _free_px4_instance()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sitl_bridge", "run", "--autopilot", "px4", "--px4-bin", px4_bin,
+         "--speed-factor", "1", "--instance-base", str(instance)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    output = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            line = process.stdout.readline()
+            if not line:
+                break
+            output.append(line)
+            if line.startswith("t=") and "t=    0.00" not in line:
+                break
+        assert _px4_pids(px4_bin, instance), "".join(output)
+        process.send_signal(signal.SIGINT)
+        rest, _ = process.communicate(timeout=60)
+        output.append(rest)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 130, "".join(output)
+    assert _px4_pids(px4_bin, instance) == []
+    assert ports_released(instance)

@@ -1,0 +1,133 @@
+"""`sitl-bridge run` as a user runs it: a subprocess, from another working directory."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from test_session import pick_mavlink_instances, ports_released
+
+from sitl_bridge.commands.run import speed_factor_arg
+
+
+def _command(*args: str) -> list[str]:
+    return [sys.executable, "-m", "sitl_bridge", "run", *args]
+
+
+def _session_processes(sid: int) -> list[int]:
+    """Pids still alive in session `sid` (the command and anything it started there)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        state, session_id = fields[0], int(fields[3])
+        if session_id == sid and state != "Z":
+            pids.append(int(entry.name))
+    return pids
+
+
+def test_speed_factor_argument() -> None:
+    assert speed_factor_arg("max") == 0.0
+    assert speed_factor_arg("0") == 0.0
+    assert speed_factor_arg("3") == 3.0
+    assert speed_factor_arg("0.5") == 0.5
+    for bad in ("-1", "fast", "nan"):
+        with pytest.raises(Exception, match="expected a number"):
+            speed_factor_arg(bad)
+
+
+def test_demo_at_full_speed_exits_zero(tmp_path: Path) -> None:
+    base = pick_mavlink_instances(1)
+    result = subprocess.run(
+        _command("--speed-factor", "0", "--demo", "--duration", "40", "--instance-base", str(base)),
+        cwd=tmp_path, capture_output=True, text=True, timeout=240,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    out = result.stdout
+    for direction in ("east", "west", "south", "north", "up", "down"):
+        assert f"vehicle {base} {direction}" in out, out
+    assert "landed and disarmed" in out and "demo done" in out
+    assert ports_released(base)
+
+
+def test_fixed_duration_without_demo(tmp_path: Path) -> None:
+    base = pick_mavlink_instances(1)
+    result = subprocess.run(
+        _command("--speed-factor", "max", "--duration", "2", "--instance-base", str(base)),
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "t=    2.00 s" in result.stdout
+    assert f"[{base}] Hold disarmed" in result.stdout
+
+
+def test_bad_world_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("world:\n  name: bad\n  vehicles: 3\n")
+    result = subprocess.run(_command(str(bad), "--duration", "1"), capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(bad) in lines[0], result.stderr
+
+
+@pytest.mark.parametrize("stub_process", [False, True], ids=["in-process", "stub-processes"])
+def test_ctrl_c_leaves_no_process_or_port_behind(stub_process: bool) -> None:
+    base = pick_mavlink_instances(2)
+    args = ["--speed-factor", "1", "--vehicles", "2", "--instance-base", str(base)]
+    if stub_process:
+        args.append("--stub-process")
+    process = subprocess.Popen(_command(*args), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True, start_new_session=True)
+    output = []
+    try:
+        # Wait until it serves: a status line shows simulated time advancing.
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            line = process.stdout.readline()
+            if not line:
+                break
+            output.append(line)
+            if line.startswith("t=") and "t=    0.00" not in line:
+                break
+        assert any(line.startswith("t=") for line in output), "".join(output)
+        process.send_signal(signal.SIGINT)
+        rest, _ = process.communicate(timeout=30)
+        output.append(rest)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert process.returncode == 130, "".join(output)
+    assert "Traceback" not in "".join(output)
+    assert _session_processes(process.pid) == []
+    assert ports_released(base) and ports_released(base + 1)
+
+
+def test_external_autopilot_started_by_hand_flies_the_demo(tmp_path: Path) -> None:
+    """`run --autopilot external` waits like Gazebo; a stub started on its own plugs in."""
+    base = pick_mavlink_instances(1)
+    run = subprocess.Popen(_command("--autopilot", "external", "--speed-factor", "0", "--demo",
+                                    "--instance-base", str(base)),
+                           cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    stub = subprocess.Popen([sys.executable, "-m", "sitl_bridge", "stub", "-i", str(base), "--once"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        out, _ = run.communicate(timeout=240)
+        assert run.returncode == 0, out
+        assert "waiting for autopilots" in out and "landed and disarmed" in out
+        assert stub.wait(timeout=30) == 0  # --once: it exits when the simulator goes
+    finally:
+        for process in (run, stub):
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    assert ports_released(base)
