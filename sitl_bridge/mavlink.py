@@ -244,18 +244,18 @@ class FrameParser:
             return _BAD
         if size - pos < total:
             return _INCOMPLETE
-        end_payload = pos + header_len + length
-        crc = buf[end_payload] | (buf[end_payload + 1] << 8)
-        if crc != crc_mcrf4xx(bytes(buf[pos + 1 : end_payload]) + _CRC_EXTRA_BYTES[cls.crc_extra]):
+        raw = bytes(buf[pos : pos + total])
+        end_payload = header_len + length
+        crc = crc_mcrf4xx(_CRC_EXTRA_BYTES[cls.crc_extra], crc_mcrf4xx(memoryview(raw)[1:end_payload]))
+        if crc != raw[end_payload] | (raw[end_payload + 1] << 8):
             self.stats.bad_crc += 1
             return _BAD
         full = cls.unpacker.size
-        payload = bytes(buf[pos + header_len : end_payload])
         if length < full:
-            payload += bytes(full - length)
-        elif length > full:
-            payload = payload[:full]
-        frames.append(Frame(msgid, sysid, compid, seq, payload, bytes(buf[pos : pos + total])))
+            payload = raw[header_len:end_payload] + bytes(full - length)
+        else:
+            payload = raw[header_len : header_len + full]
+        frames.append(Frame(msgid, sysid, compid, seq, payload, raw))
         self.stats.frames += 1
         return total
 

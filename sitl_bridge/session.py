@@ -21,9 +21,12 @@ time (20 Hz, 1 Hz) while autopilots measure their loss timeouts in simulated tim
 real time the gap between two setpoints is F times longer in simulated time. Like PX4's rcS
 with PX4_SIM_SPEED_FACTOR, the timeouts marked `wall` in `px4_params/*.params`
 (COM_OF_LOSS_T, COM_DL_LOSS_T, COM_RC_LOSS_T) are multiplied by the speed factor (by 30 for
-F = 0, `autopilot.px4.MAX_SPEED_ASSUMED`), for PX4 (environment + read-back) and for the stub
-(its parameter table) alike; the other overrides of that file apply to the stub too, so both
-autopilots run with the same configuration.
+F = 0, which covers up to ~600x at MAVSDK's 20 Hz), capped at the file's maximum. The session
+hands F to both autopilots, which apply it through their own parameter tables: PX4 via
+`autopilot.px4` (PX4_PARAM_ environment, then read back and corrected over MAVLink, since
+rcS rescales some of them itself) and the stub via `ParamTable(speed_factor=F)` (in-process,
+or `sitl-bridge stub --speed-factor F`). Both read the same file, so they run with the same
+configuration; `params=` overrides come last (unscaled).
 """
 
 from __future__ import annotations

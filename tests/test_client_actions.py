@@ -59,3 +59,59 @@ def test_toward_goal_points_at_goal_with_the_given_speed(position, goal, speed) 
         return
     assert np.linalg.norm(velocity) == pytest.approx(speed)
     assert float(np.dot(velocity, offset)) == pytest.approx(speed * np.linalg.norm(offset), rel=1e-9)
+
+
+def test_client_without_autopilot_times_out_and_releases_its_port() -> None:
+    """Real MAVSDK listening on a free port with nobody sending: a clean wall-time timeout."""
+    import socket
+
+    from sitl_bridge.client import OffboardClient, SimTimeoutError
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    client = OffboardClient(0, url=f"udpin://127.0.0.1:{port}")
+    with pytest.raises(SimTimeoutError, match="autopilot heartbeat"):
+        client.connect(timeout_s=0.3)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as again:
+        again.bind(("127.0.0.1", port))  # MAVSDK let go of it
+
+
+def test_timed_legs_need_a_clock() -> None:
+    from sitl_bridge.client import OffboardClient, OffboardClientError
+
+    with pytest.raises(OffboardClientError, match="clock"):
+        OffboardClient(0).fly_velocity_ned((1, 0, 0), 1.0)
+
+
+class _CountingClock:
+    """Simulated time that only moves when asked (what SimSession.run_for guarantees)."""
+
+    def __init__(self) -> None:
+        self.time_s = 0.0
+
+    def run_for(self, seconds: float) -> None:
+        self.time_s += seconds
+
+
+def test_wait_until_advances_simulated_time_in_polls() -> None:
+    from sitl_bridge.client import wait_until
+
+    clock = _CountingClock()
+    wait_until(lambda: clock.time_s >= 0.1, clock=clock, timeout_s=1.0, what="x", poll_s=0.04)
+    assert clock.time_s == pytest.approx(0.12)  # three polls, then held
+
+
+def test_wait_until_times_out_in_simulated_time_after_min_wall() -> None:
+    import time
+
+    from sitl_bridge.client import SimTimeoutError, wait_until
+
+    clock = _CountingClock()
+    with pytest.raises(SimTimeoutError, match="never: not observed within 0.2 s of simulated time"):
+        wait_until(lambda: False, clock=clock, timeout_s=0.2, what="never", poll_s=0.04)
+    assert clock.time_s == pytest.approx(0.2)
+    start = time.monotonic()
+    with pytest.raises(SimTimeoutError):
+        wait_until(lambda: False, clock=clock, timeout_s=0.2, what="never", poll_s=0.04, min_wall_s=0.1)
+    assert time.monotonic() - start >= 0.1

@@ -21,6 +21,7 @@ def same_rotation(a, b, tol=1e-9) -> bool:
     return abs(abs(float(np.dot(a, b))) - 1.0) < tol
 
 
+@settings(deadline=None)  # a busy shared machine must not fail a property
 @given(vectors)
 def test_world_and_body_vector_conversions_round_trip(v):
     assert np.allclose(frames.ned_to_enu(frames.enu_to_ned(v)), v)
@@ -38,6 +39,7 @@ def test_axis_mapping():
     assert np.allclose(frames.enu_to_ned(np.ones((5, 3)) * (1, 2, 3)), [[2, 1, -3]] * 5)
 
 
+@settings(deadline=None)  # a busy shared machine must not fail a property
 @given(quaternions)
 def test_attitude_conversion_round_trips_and_matches_the_generic_product(q):
     q_ned_frd = frames.quat_enu_flu_to_ned_frd(q)
@@ -46,6 +48,7 @@ def test_attitude_conversion_round_trips_and_matches_the_generic_product(q):
     assert same_rotation(frames.quat_ned_frd_to_enu_flu(q_ned_frd), q)
 
 
+@settings(deadline=None)  # a busy shared machine must not fail a property
 @given(quaternions, vectors)
 def test_attitude_conversion_is_consistent_with_vector_conversions(q, v_frd):
     # rotating a body vector in PX4 frames == converting, rotating in pybullet frames, converting back
@@ -55,12 +58,14 @@ def test_attitude_conversion_is_consistent_with_vector_conversions(q, v_frd):
     assert np.allclose(via_px4, via_pybullet, atol=1e-9 * (1 + np.linalg.norm(v_frd)))
 
 
+@settings(deadline=None)  # a busy shared machine must not fail a property
 @given(quaternions, vectors)
 def test_rotate_and_inverse_rotate_round_trip(q, v):
     assert np.allclose(frames.quat_rotate_inverse(q, frames.quat_rotate(q, v)), v, atol=1e-9 * (1 + np.linalg.norm(v)))
     assert np.allclose(frames.quat_to_matrix(q) @ np.array(v), frames.quat_rotate(q, v), atol=1e-9 * (1 + np.linalg.norm(v)))
 
 
+@settings(deadline=None)  # a busy shared machine must not fail a property
 @given(angles, st.floats(min_value=-1.5, max_value=1.5), angles)
 def test_euler_round_trip(roll, pitch, yaw):
     q = frames.quat_from_euler(roll, pitch, yaw)
@@ -70,6 +75,7 @@ def test_euler_round_trip(roll, pitch, yaw):
     assert math.isclose(np.linalg.norm(q), 1.0)
 
 
+@settings(deadline=None)  # a busy shared machine must not fail a property
 @given(angles)
 def test_yaw_conventions_round_trip(yaw):
     assert math.isclose(frames.wrap_pi(frames.yaw_ned_to_enu(frames.yaw_enu_to_ned(yaw)) - yaw), 0.0, abs_tol=1e-9)
@@ -87,7 +93,7 @@ def test_known_attitudes():
                        (0.1, 0.2, 0.3, 0.4))
 
 
-@settings(max_examples=50)
+@settings(max_examples=50, deadline=None)
 @given(angles)
 def test_wrap_pi_range(a):
     w = frames.wrap_pi(a * 7.3)

@@ -14,6 +14,7 @@ import socket
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -167,6 +168,22 @@ def test_actuators_map_to_motor_commands(rig):
     peer.send(peer.actuators(link.last_sent_time_usec, [0.6] * 16, armed=False))
     command = link.receive_actuators(frame.time_us, 2.0)
     assert not command.armed and command.controls == (0.0, 0.0, 0.0, 0.0)
+
+
+def test_values_are_clamped_to_px4_ranges(rig):
+    sim, sensors, link, peer, lockstep = rig
+    lockstep.pumps.clear()
+    frame = sensors[0].sample(sim.state(0), sim.time_us)
+    frame.accel_frd_m_s2 = np.array([500.0, -500.0, float("nan")])  # a crash: beyond 16 g
+    frame.gyro_frd_rad_s = np.array([100.0, -100.0, 1.0])  # beyond 2000 deg/s
+    link.send_sensor_frame(frame)
+    deadline = time.monotonic() + 5
+    while not peer.of_type("HIL_SENSOR") and time.monotonic() < deadline:
+        peer.pump()
+    (message,) = peer.of_type("HIL_SENSOR")
+    assert (message.xacc, message.yacc, message.zacc) == (156.0, -156.0, 0.0)
+    assert message.xgyro == pytest.approx(34.9) and message.ygyro == pytest.approx(-34.9)
+    assert message.zgyro == pytest.approx(1.0)
 
 
 def test_garbage_and_split_frames_do_not_stop_the_link(rig):

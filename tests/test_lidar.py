@@ -126,3 +126,14 @@ def test_mesh_obstacle_is_loaded_and_seen(tmp_path):
     assert world.obstacles[0].shape.mesh_file == str(tmp_path / "cube.obj")
     with Simulation(world) as sim:
         assert Lidar(sim).scan()[0].horizontal_m[17] == pytest.approx(3.0, abs=0.01)
+
+
+def test_per_vehicle_configs_in_one_batch():
+    with Simulation(load_world(WORLDS / "two_drones_empty.yaml")) as sim:
+        sim.place_vehicle(0, (0, 0, 3.0), yaw_enu_rad=math.pi / 2)
+        sim.place_vehicle(1, (0, 3.0, 3.0), yaw_enu_rad=-math.pi / 2)
+        small = LidarConfig(horizontal_rays=5, horizontal_fov_deg=40, up_rays=0, down_rays=1, down_fov_deg=0)
+        scans = Lidar(sim, [LidarConfig(), small]).scan()
+        assert [len(s.horizontal_m) for s in scans] == [35, 5]
+        assert scans[1].horizontal_m[2] == pytest.approx(3.0 - 0.47 / 2, abs=0.01)
+        assert scans[1].down_m.tolist() == pytest.approx([3.0], abs=0.01)

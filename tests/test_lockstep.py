@@ -213,9 +213,9 @@ def test_runner_resume_hold_and_error(free_instance):
         assert held_at >= 100_000 and held_at % STEP_US == 0
         time.sleep(0.1)
         assert sim.time_us == held_at
-        peers[0].close()  # the autopilot goes away mid-run
-        runner.resume()
+        peers[0].close()  # the autopilot goes away (noticed while held or on the next step)
         with pytest.raises(LinkClosed):
+            runner.resume()
             runner.wait(timeout_s=5)
     finally:
         runner.close()

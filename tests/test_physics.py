@@ -257,3 +257,15 @@ def test_out_of_range_and_nan_inputs_are_clamped(empty_sim):
     speeds = empty_sim.state(0).rotor_speeds_rad_s
     assert np.allclose(speeds, (100, 100, 1100, 1100), rtol=1e-3)
     assert np.all(np.isfinite(empty_sim.state(0).position_enu_m))
+
+
+
+def test_a_blown_up_state_raises_instead_of_spreading_nan(empty_sim):
+    from sitl_bridge.physics import PhysicsError
+
+    empty_sim.place_vehicle(0, (0, 0, 5.0), velocity_enu_m_s=(float("nan"), 0, 0))
+    with pytest.raises(PhysicsError, match="no longer finite"):
+        empty_sim.step([MotorCommand.disarmed()])
+    empty_sim.reset()
+    empty_sim.step([MotorCommand.disarmed()])  # usable again after a reset
+    assert np.all(np.isfinite(empty_sim.state(0).position_enu_m))

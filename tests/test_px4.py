@@ -174,6 +174,12 @@ class ApiClient:
         message = mav.MAVLink_command_long_message(self.system, 1, command, 0, *p)
         self.sock.sendto(message.pack(self.codec), self.target)
 
+    def velocity_ned(self, vn: float, ve: float, vd: float) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED with velocity only (MAVSDK's offboard type mask)."""
+        message = mav.MAVLink_set_position_target_local_ned_message(
+            0, self.system, 1, mav.MAV_FRAME_LOCAL_NED, 0x09C7, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0)
+        self.sock.sendto(message.pack(self.codec), self.target)
+
     def poll(self) -> None:
         while True:
             try:
@@ -227,6 +233,25 @@ def test_px4_boots_arms_hovers_and_restarts(px4_bin, tmp_path):
         api.poll()
         assert api.armed and api.relative_alt_m > 1.5  # PX4's estimate agrees
         assert lockstep.stats.timeouts == 0
+
+        # Offboard velocity control without RC or GCS (px4_params): 1 m/s north for 3 s.
+        steps = [0]
+
+        def stream_setpoint() -> None:  # ~20 Hz of simulated time, like MAVSDK's stream
+            steps[0] += 1
+            if steps[0] % 12 == 1:
+                api.velocity_ned(1.0, 0.0, 0.0)
+
+        lockstep.pumps.append(stream_setpoint)
+        lockstep.run_for(0.5)
+        api.command(mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6)  # OFFBOARD
+        assert lockstep.run_until(lambda: (api.poll(), mav.MAV_CMD_DO_SET_MODE in api.acks)[1], 2.0)
+        assert api.acks[mav.MAV_CMD_DO_SET_MODE] == mav.MAV_RESULT_ACCEPTED
+        north_before = float(sim.state(0).position_ned_m[0])
+        lockstep.run_for(3.0)
+        moved = float(sim.state(0).position_ned_m[0]) - north_before
+        assert 1.5 < moved < 3.5, moved
+        lockstep.pumps.remove(stream_setpoint)
 
         # Episode reset keeping PX4: force-disarmed, teleported home; its estimate follows.
         in_place_s = fleet.reset_in_place(lockstep)

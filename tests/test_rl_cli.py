@@ -134,3 +134,53 @@ def test_curriculum_transfers_and_reevaluates_earlier_stages(tmp_path: Path) -> 
     # Running it again resumes: nothing is retrained.
     assert cli("curriculum", str(file), "--out", str(tmp_path / "out"), "--no-progress") == 0
     assert json.loads((tmp_path / "out" / "e_er__0" / "curriculum.json").read_text()) == state
+
+
+def short_scenario(tmp_path: Path, max_steps: int = 6) -> str:
+    """worlds/empty.yaml with a shorter episode (scenarios are data: no code change)."""
+    text = Path(EMPTY).read_text().replace("max_steps: 20", f"max_steps: {max_steps}", 1)
+    assert f"max_steps: {max_steps}" in text
+    path = tmp_path / "short_empty.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+def test_real_env_run_killed_with_sigkill_resumes_exactly(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    world = short_scenario(tmp_path)
+    args = ["train", world, "--episodes", "4", *TINY[:-1], "--eval-episodes", "0", "--no-progress"]
+    assert cli(*args, "--out", str(tmp_path / "ref")) == 0
+    reference = read_records(only_run(tmp_path / "ref") / "episodes.jsonl")
+
+    out = tmp_path / "killed"
+    code = "import sys; from tests.test_rl_cli import cli; sys.exit(cli(*sys.argv[1:]))"
+    proc = subprocess.Popen([sys.executable, "-c", code, *args, "--out", str(out)], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and proc.poll() is None:
+            runs = list(out.glob("*/episodes.jsonl")) if out.exists() else []
+            if runs and runs[0].read_text().count("\n") >= 2:
+                break
+            time.sleep(0.02)
+        time.sleep(0.3)  # into the next episode
+        assert proc.poll() is None, "the run ended before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+        assert proc.wait(timeout=30) == -signal.SIGKILL
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    run = only_run(out)
+    assert cli("train", "--resume", str(run), "--no-progress") == 0
+    records = read_records(run / "episodes.jsonl")
+    assert [r["episode"] for r in records] == [0, 1, 2, 3]
+
+    def same(r: dict) -> tuple:
+        return r["episode"], r["actions"], r["reward"], r["outcome"], r["env_seed"], r["epsilon"], r["mean_loss"]
+
+    assert [same(r) for r in records] == [same(r) for r in reference]

@@ -79,8 +79,10 @@ def test_bad_world_is_one_line_and_exit_2(tmp_path: Path) -> None:
     assert len(lines) == 1 and str(bad) in lines[0], result.stderr
 
 
-@pytest.mark.parametrize("stub_process", [False, True], ids=["in-process", "stub-processes"])
-def test_ctrl_c_leaves_no_process_or_port_behind(stub_process: bool) -> None:
+@pytest.mark.parametrize(("stub_process", "sig"), [
+    (False, signal.SIGINT), (True, signal.SIGINT), (False, signal.SIGTERM),
+], ids=["in-process", "stub-processes", "sigterm"])
+def test_ctrl_c_leaves_no_process_or_port_behind(stub_process: bool, sig: int) -> None:
     base = pick_mavlink_instances(2)
     args = ["--speed-factor", "1", "--vehicles", "2", "--instance-base", str(base)]
     if stub_process:
@@ -99,7 +101,7 @@ def test_ctrl_c_leaves_no_process_or_port_behind(stub_process: bool) -> None:
             if line.startswith("t=") and "t=    0.00" not in line:
                 break
         assert any(line.startswith("t=") for line in output), "".join(output)
-        process.send_signal(signal.SIGINT)
+        process.send_signal(sig)
         rest, _ = process.communicate(timeout=30)
         output.append(rest)
     finally:
@@ -130,4 +132,44 @@ def test_external_autopilot_started_by_hand_flies_the_demo(tmp_path: Path) -> No
             if process.poll() is None:
                 process.kill()
                 process.wait()
+    assert ports_released(base)
+
+
+def test_bench_stub_runs_and_reports_both_cases(capsys) -> None:
+    import argparse
+
+    from sitl_bridge.bench import stub
+
+    assert stub.run(argparse.Namespace(seconds=0.2)) == 0
+    out = capsys.readouterr().out
+    for vehicles in (1, 2):
+        for phase in ("ground", "flying"):
+            assert f"{vehicles} vehicle(s) {phase}" in out, out
+
+
+def test_external_mavsdk_script_flies_a_free_running_simulator() -> None:
+    """What a user's MAVSDK script sees: `sitl-bridge run` free-running at 5x, the client with
+    no simulation clock (its waits are wall-time polls of telemetry)."""
+    from sitl_bridge.client import OffboardClient
+
+    base = pick_mavlink_instances(1)
+    process = subprocess.Popen(_command("--speed-factor", "5", "--quiet", "--instance-base", str(base)),
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        with OffboardClient(base) as client:  # connect() waits up to 30 s of wall time
+            assert client.clock is None and client.autopilot_type() == "PX4"
+            client.wait_healthy(timeout_s=30)
+            client.arm()
+            assert client.takeoff(2.5, timeout_s=30) == pytest.approx(2.5, abs=0.3)
+            client.start_offboard()
+            assert client.flight_mode() == "OFFBOARD"
+            client.hold()
+            client.land(timeout_s=60)
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=30)
+        assert process.returncode == 130, err
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
     assert ports_released(base)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import socket
 import struct
 import time
@@ -174,7 +175,10 @@ def test_unknown_command_is_unsupported_and_foreign_commands_are_ignored(vehicle
     peer.send(command_long(31010, 1.0, target=api.system_id))
     ack = peer.receive(of_type("COMMAND_ACK"))
     assert ack.command == 31010 and ack.result == d.MAV_RESULT_UNSUPPORTED
-    assert api.stats.commands == 1 and api.stats.unsupported_commands == 1
+    peer.send(d.MAVLink_command_int_message(api.system_id, 1, 0, 31011, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+    ack = peer.receive(of_type("COMMAND_ACK"))
+    assert ack.command == 31011 and ack.result == d.MAV_RESULT_UNSUPPORTED
+    assert api.stats.commands == 2 and api.stats.unsupported_commands == 2
 
 
 def test_takeoff_then_offboard_velocity_from_set_position_target(vehicle) -> None:
@@ -303,3 +307,35 @@ def test_keepalive_heartbeat_while_simulated_time_stands_still(free_instance: in
             assert harness.autopilot.time_us == frozen and api.stats.keepalives >= 1
         finally:
             peer.close()
+
+
+def test_reposition_flies_to_a_global_position_and_holds(vehicle) -> None:
+    harness, api, peer, advance = vehicle
+    ap = harness.autopilot
+    peer.send(command_long(d.MAV_CMD_NAV_TAKEOFF))
+    assert peer.receive(of_type("COMMAND_ACK")).result == d.MAV_RESULT_ACCEPTED
+    peer.send(command_long(d.MAV_CMD_COMPONENT_ARM_DISARM, 1.0))
+    assert peer.receive(of_type("COMMAND_ACK")).result == d.MAV_RESULT_ACCEPTED
+    advance(5.0)   # armed in TAKEOFF: climbs, then holds
+    lat0, lon0, alt0 = ap.estimate.origin
+    target_lat = lat0 + math.degrees(3.0 / 6378137.0)   # 3 m north
+    reposition = d.MAVLink_command_int_message(
+        api.system_id, 1, d.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, d.MAV_CMD_DO_REPOSITION, 0, 0,
+        -1.0, 1.0, 0.0, float("nan"), round(target_lat * 1e7), round(lon0 * 1e7), 4.0)
+    peer.send(reposition)
+    ack = peer.receive(lambda m: m.get_type() == "COMMAND_ACK" and m.command == d.MAV_CMD_DO_REPOSITION)
+    assert ack.result == d.MAV_RESULT_ACCEPTED
+    advance(8.0)
+    north, east, down = ap.estimate.position_ned_m
+    assert north == pytest.approx(3.0, abs=0.3) and abs(east) < 0.3
+    assert -down == pytest.approx(4.0, abs=0.3)
+    assert ap.custom_mode == HOLD_CUSTOM_MODE
+
+
+def test_malformed_command_parameters_still_get_an_answer(vehicle) -> None:
+    _, api, peer, _ = vehicle
+    peer.send(command_long(d.MAV_CMD_DO_SET_MODE, float("nan"), float("inf")))
+    assert peer.receive(of_type("COMMAND_ACK")).result == d.MAV_RESULT_UNSUPPORTED
+    peer.send(command_long(d.MAV_CMD_COMPONENT_ARM_DISARM, float("nan")))
+    assert peer.receive(of_type("COMMAND_ACK")).result == d.MAV_RESULT_DENIED
+    assert not api.autopilot.armed

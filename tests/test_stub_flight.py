@@ -9,7 +9,7 @@ import pytest
 
 from sitl_bridge.autopilot.stub import CommandResult, LandedState, MainMode, ParamTable, custom_mode
 from sitl_bridge.autopilot.stub.harness import StubHarness
-from sitl_bridge.autopilot.stub.modes import HOLD, LAND, OFFBOARD
+from sitl_bridge.autopilot.stub.modes import HOLD, LAND, OFFBOARD, RTL
 from sitl_bridge.world.loader import load_world
 
 WORLD = load_world(Path(__file__).resolve().parents[1] / "worlds" / "empty.yaml")
@@ -119,7 +119,7 @@ def test_offboard_needs_a_recent_setpoint() -> None:
         assert ap.set_mode(MainMode.OFFBOARD, 0) is CommandResult.ACCEPTED
 
 
-@pytest.mark.parametrize(("action", "expected"), [(5, HOLD), (4, LAND), (0, HOLD)])
+@pytest.mark.parametrize(("action", "expected"), [(5, HOLD), (4, LAND), (0, HOLD), (3, RTL)])
 def test_offboard_loss_failsafe_in_simulated_time(action: int, expected: tuple[int, int]) -> None:
     params = ParamTable()
     params.set("COM_OBL_RC_ACT", action)
@@ -175,3 +175,20 @@ def test_armed_on_the_ground_idles_and_disarms_after_preflight_timeout() -> None
         assert ap.armed and ap.landed_state is LandedState.ON_GROUND
         assert ap.last_command.controls == (0.0, 0.0, 0.0, 0.0) and ap.last_command.armed
         assert harness.run_for(2.5, until=lambda: not ap.armed)
+
+
+def test_return_to_launch_flies_home_and_lands() -> None:
+    params = ParamTable()
+    params.set("RTL_RETURN_ALT", 4.0)
+    with StubHarness(WORLD, seed=10, params=params) as harness:
+        ap = harness.autopilot
+        home = harness.position_ned_m.copy()
+        harness.take_off()
+        ap.set_velocity_setpoint_ned((0.0, 0.0, 0.0))
+        assert ap.set_mode(MainMode.OFFBOARD, 0) is CommandResult.ACCEPTED
+        harness.fly_velocity((1.5, -1.0, 0.0), 2.0)
+        assert ap.return_to_launch() is CommandResult.ACCEPTED
+        assert harness.run_for(4.0, until=lambda: -harness.position_ned_m[2] > 3.5)   # climbs first
+        assert harness.run_for(40.0, until=lambda: not ap.armed)
+        assert np.linalg.norm(harness.position_ned_m[:2] - home[:2]) < 0.5
+        assert abs(harness.position_ned_m[2] - home[2]) < 0.1

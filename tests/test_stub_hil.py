@@ -12,6 +12,7 @@ import pytest
 
 from sitl_bridge import mavlink
 from sitl_bridge.autopilot.stub import HilClient, StubAutopilot, StubVehicle
+from sitl_bridge.autopilot.stub.hil_client import PX4_STATE_INTERVAL_US
 from sitl_bridge.autopilot.stub.modes import HOLD, CommandResult
 from sitl_bridge.hil.link import HilLink
 from sitl_bridge.hil.lockstep import Lockstep
@@ -70,7 +71,7 @@ class SimulatorPeer:
 @pytest.fixture
 def peer_and_client(free_instance: int):
     peer = SimulatorPeer(free_instance)
-    client = HilClient(StubAutopilot(free_instance), free_instance)
+    client = HilClient(StubAutopilot(free_instance), free_instance, state_interval_us=PX4_STATE_INTERVAL_US)
     try:
         assert client.connect(2.0)
         peer.accept()
@@ -172,6 +173,7 @@ def test_stub_command_runs_as_its_own_process(free_instance: int) -> None:
         lockstep.run_for(2.0)
         assert link.actuators_flowing and lockstep.stats.timeouts == 0
         assert link.stats.actuator_msgs >= 490
+        assert link.state_interval_us == -1   # estimating from sensors: no ground truth asked for
         codec = mavlink.new_codec(245, 190)
         heartbeat = None
         deadline = time.monotonic() + 5.0

@@ -11,10 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from sitl_bridge.commands import worlds as worlds_command
 from sitl_bridge.errors import ConfigError, Node
 from sitl_bridge.world import load_world, realize
+from sitl_bridge.world.layout import horizontal_radius_m
 
 WORLDS = Path(__file__).resolve().parents[1] / "worlds"
 SHIPPED = ("empty", "random_goal", "obstacle", "random_obstacle", "two_drones_empty", "window",
@@ -170,7 +173,7 @@ def test_random_obstacle_lies_on_the_path_and_changes_shape():
     world = load_world(WORLDS / "random_obstacle.yaml")
     rng = np.random.default_rng(5)
     kinds = set()
-    for _ in range(40):
+    for _ in range(100):
         layout = realize(world, rng)
         start = np.array(layout.spawn_positions_m[0][:2])
         goal = np.array(layout.goal_of(0).center_m[:2])
@@ -184,6 +187,8 @@ def test_random_obstacle_lies_on_the_path_and_changes_shape():
         assert 0.35 - 1e-9 <= along <= 0.65 + 1e-9
         assert lateral <= 0.5 + 1e-9
         assert math.isclose(placed.position_m[2], placed.shape.half_height_m)  # rests on the ground
+        clearance = horizontal_radius_m(placed.shape) + 0.5  # never on the spawn or in the goal
+        assert np.linalg.norm(xy - start) > clearance and np.linalg.norm(xy - goal) > clearance
     assert kinds == {"box", "cylinder", "sphere"}
 
 
@@ -208,3 +213,48 @@ def test_spawn_randomisation_stays_in_its_ranges(tmp_path):
     assert positions[:, 0].std() > 0.2 and np.all(positions[:, 2] == spawn.position_m[2])
     assert np.all(np.abs(yaws - spawn.yaw_rad) <= math.radians(20)) and yaws.std() > 0.05
     assert "randomised: spawn" in world.summary()
+
+
+def test_worlds_check_build_builds_every_world_in_pybullet(capsys):
+    parser = argparse.ArgumentParser()
+    worlds_command.register(parser.add_subparsers())
+    args = parser.parse_args(["worlds", "check", "--build", *(str(WORLDS / f"{n}.yaml") for n in SHIPPED)])
+    assert args.func(args) == 0
+    assert capsys.readouterr().out.count(": ok: ") == len(SHIPPED)
+
+
+def _paths(node, prefix=()):
+    """Every key path inside a parsed YAML document."""
+    yield prefix
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _paths(v, (*prefix, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _paths(v, (*prefix, i))
+
+
+JUNK = st.one_of(st.none(), st.booleans(), st.integers(-5, 5), st.floats(allow_nan=True), st.text(max_size=5),
+                 st.lists(st.integers(-3, 3), max_size=4), st.dictionaries(st.text(max_size=3), st.integers(), max_size=2))
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_any_corruption_is_a_one_line_config_error_never_a_crash(tmp_path, data):
+    name = data.draw(st.sampled_from(SHIPPED))
+    doc = yaml.safe_load((WORLDS / f"{name}.yaml").read_text())
+    doc.pop("task", None)
+    doc.pop("train", None)
+    paths = [p for p in _paths(doc["world"], ("world",)) if len(p) > 1]
+    path = data.draw(st.sampled_from(paths))
+    junk = data.draw(JUNK)
+    node = doc
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = junk
+    file = tmp_path / "fuzz.yaml"
+    file.write_text(yaml.safe_dump(doc))
+    try:
+        load_world(file)
+    except ConfigError as exc:
+        assert "\n" not in str(exc) and str(exc).startswith(f"{file}: ")

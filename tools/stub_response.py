@@ -8,6 +8,7 @@ time like MAVSDK), and prints the per-step displacement of both and a summary pe
 first step from hover, repeated step, vertical step, coasting after a switch to zero velocity.
 
     python tools/stub_response.py [--csv PATH] [--world worlds/empty.yaml] [--seed 0] [--ground-truth]
+                                  [--drag PER_S]
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import bisect
 import csv
 import statistics
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ sys.path.insert(0, str(REPO))
 from sitl_bridge.autopilot.stub import CommandResult, MainMode  # noqa: E402
 from sitl_bridge.autopilot.stub.harness import StubHarness  # noqa: E402
 from sitl_bridge.client.actions import Action, action_velocity_ned  # noqa: E402
+from sitl_bridge.physics import IrisParams  # noqa: E402
 from sitl_bridge.world.loader import load_world  # noqa: E402
 
 DEFAULT_CSV = REPO.parent / "shared" / "data" / "px4-sih-action-response.csv"
@@ -90,10 +92,18 @@ def px4_steps(csv_path: Path) -> list[Step]:
     return steps
 
 
-def stub_steps(actions: list[int], world_path: Path, seed: int, ground_truth: bool) -> list[Step]:
+def stub_steps(actions: list[int], world_path: Path, seed: int, ground_truth: bool,
+               drag_per_s: float | None = None) -> list[Step]:
     """Fly `actions` with the stub from an offboard hover; displacement of its own estimate
-    (what LOCAL_POSITION_NED reports, as in the PX4 recording)."""
-    with StubHarness(load_world(world_path), seed=seed, ground_truth_estimate=ground_truth) as harness:
+    (what LOCAL_POSITION_NED reports, as in the PX4 recording). `drag_per_s`: give the simulated
+    Iris this much horizontal drag (m/s^2 per m/s) instead of its rotor drag (~0.36)."""
+    airframe = None
+    if drag_per_s is not None:
+        iris = IrisParams()
+        hover_omega_sum = 4 * (iris.hover_input() * iris.input_scaling_rad_s + iris.zero_position_armed_rad_s)
+        airframe = replace(iris, rotor_drag_coefficient=drag_per_s * iris.mass_kg / hover_omega_sum)
+    with StubHarness(load_world(world_path), seed=seed, ground_truth_estimate=ground_truth,
+                     airframe=airframe) as harness:
         ap = harness.autopilot
         harness.take_off()
         ap.set_velocity_setpoint_ned((0.0, 0.0, 0.0))
@@ -125,10 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--world", type=Path, default=REPO / "worlds" / "empty.yaml")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--ground-truth", action="store_true", help="stub estimates from ground truth")
+    parser.add_argument("--drag", type=float, default=None, metavar="PER_S",
+                        help="horizontal drag of the simulated vehicle in m/s^2 per m/s (Iris rotor drag "
+                             "is ~0.36; PX4's SIH quad, which made the recording, uses 1.0)")
     args = parser.parse_args(argv)
 
     px4 = px4_steps(args.csv)
-    stub = stub_steps([s.action for s in px4], args.world, args.seed, args.ground_truth)
+    stub = stub_steps([s.action for s in px4], args.world, args.seed, args.ground_truth, args.drag)
     names = {int(a): a.name.lower() for a in Action}
     print(f"{'#':>3} {'action':>7} {'kind':>9} | {'PX4 SIH N E D (m)':>24} {'along':>6} | "
           f"{'stub N E D (m)':>24} {'along':>6}")

@@ -30,8 +30,9 @@ def _instance_free(instance: int) -> bool:
 
 
 def free_instance_base(count: int, start: int = 200) -> int:
-    """First instance i >= start with instances i..i+count-1 all free (benches stay off 0)."""
-    for first in range(start, start + 1000):
+    """First instance i >= start with instances i..i+count-1 all free (benches stay off the
+    low instances users run; MAVLink system ids 1 + i must stay below 256)."""
+    for first in range(start, 255 - count):
         if all(_instance_free(first + k) for k in range(count)):
             return first
     raise RuntimeError("no free vehicle instances for the benchmark")

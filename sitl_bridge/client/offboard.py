@@ -143,7 +143,15 @@ class OffboardClient:
 
     # -- lifecycle --------------------------------------------------------------------
     def connect(self, timeout_s: float = 30.0) -> OffboardClient:
-        """Listen on the API port and wait until MAVSDK has discovered the autopilot."""
+        """Listen on the API port and wait until MAVSDK has discovered the autopilot and its
+        telemetry has seen a HEARTBEAT. On failure everything opened so far is released."""
+        try:
+            return self._connect(timeout_s)
+        except BaseException:
+            self.close()
+            raise
+
+    def _connect(self, timeout_s: float) -> OffboardClient:
         route_mavsdk_logs()
         self._config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
         self._mavsdk = Mavsdk(self._config)
@@ -373,6 +381,11 @@ class OffboardClient:
         except OffboardError as exc:
             raise OffboardClientError(f"vehicle {self.instance}: velocity setpoint failed: {exc.result.name}") from exc
         self._velocity_ned_m_s = np.array([north, east, down])
+
+    @property
+    def commanded_velocity_ned_m_s(self) -> np.ndarray:
+        """The last velocity setpoint sent (NED, m/s)."""
+        return self._velocity_ned_m_s.copy()
 
     def request_offboard(self) -> Future[Any]:
         """Send a zero-velocity setpoint (required before start), then request OFFBOARD."""

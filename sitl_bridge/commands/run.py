@@ -14,9 +14,14 @@ import signal
 import sys
 import time
 
+from sitl_bridge.autopilot.px4 import Px4Error
 from sitl_bridge.errors import ConfigError
+from sitl_bridge.hil.errors import HilError
 from sitl_bridge.hil.lockstep import parse_speed_factor
-from sitl_bridge.session import AUTOPILOTS, SimSession, default_world_path
+from sitl_bridge.session import AUTOPILOTS, SessionError, SimSession, default_world_path
+
+RUNTIME_FAILURES: tuple[type[BaseException], ...] = (SessionError, HilError, Px4Error)
+"""Failures reported as one message (exit 1) rather than a traceback."""
 
 STATUS_PERIOD_S = 0.5
 """Wall seconds between status lines."""
@@ -62,7 +67,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--vehicles", type=int, default=None,
                         help="number of vehicles (default: as many as the world defines)")
     parser.add_argument("--duration", type=float, default=None,
-                        help="simulated seconds to run (default: until Ctrl-C)")
+                        help="simulated seconds to run (default: until Ctrl-C; with --demo: until "
+                             "the demo is done, or this long if it is longer)")
     parser.add_argument("--instance-base", type=int, default=0,
                         help="first vehicle instance (ports 4560+i, 14580+i -> 14540+i)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of physics and sensors")
@@ -112,6 +118,10 @@ def main(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"sitl-bridge run: {exc}", file=sys.stderr)
         return 2
+    except RUNTIME_FAILURES as exc:
+        # A busy port, an autopilot that died or never answered: say what, no traceback.
+        print(f"sitl-bridge run: {exc}", file=sys.stderr)
+        return 1
 
 
 def _print_banner(session: SimSession) -> None:
@@ -158,14 +168,19 @@ def _whole_steps(session: SimSession, seconds: float) -> float:
 
 
 def _run_demo(session: SimSession, args: argparse.Namespace) -> int:
-    """Fly the demo; `--duration` is then a simulated-time budget for the demo itself."""
-    from sitl_bridge.client.demo import run_demo  # mavsdk is only needed for the demo
-    from sitl_bridge.client.fleet import Fleet
+    """Fly the demo with every vehicle. With `--duration` longer than the demo took, the
+    simulation then runs on (autopilots holding or landed) until that simulated time."""
+    # mavsdk is only imported for the demo (it is slow to import for every other command)
+    from sitl_bridge.client import Fleet, OffboardClientError, SimTimeoutError
+    from sitl_bridge.client.demo import run_demo
 
     started = time.monotonic()
     sim_start = session.time_s
-    with Fleet.for_session(session) as fleet:
-        results = run_demo(fleet, report=lambda text: print(f"[{session.time_s:7.2f} s] {text}", flush=True))
+    try:
+        with Fleet.for_session(session) as fleet:
+            results = run_demo(fleet, report=lambda text: print(f"[{session.time_s:7.2f} s] {text}", flush=True))
+    except (OffboardClientError, SimTimeoutError) as exc:
+        raise SessionError(f"demo failed: {exc}") from exc
     wall = time.monotonic() - started
     sim = session.time_s - sim_start
     worst = max((r.error_m for r in results), default=0.0)

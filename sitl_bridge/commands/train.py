@@ -51,8 +51,10 @@ def main(args: argparse.Namespace) -> int:
         result = trainer.train()
         print(f"{result.episodes} episodes ({result.global_step} steps) in {result.wall_time_s:.1f} s this session; "
               f"rolling success {result.success_rate:.0%}")
-        finished = result.episodes >= trainer.config.episodes or trainer.stopped_early
-        if finished and trainer.config.eval_episodes > 0:
+        if trainer.stopped_early and trainer.last_eval is not None:
+            print(f"stopped early: greedy success reached {trainer.config.stop_on_success:.0%}")
+            print("greedy evaluation: " + trainer.last_eval.summary())
+        elif result.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0:
             print("greedy evaluation: " + trainer.evaluate().summary())
     return 0
 

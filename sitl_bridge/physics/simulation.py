@@ -30,7 +30,7 @@ from sitl_bridge.physics.state import Collision, MotorCommand, VehicleState
 from sitl_bridge.world.layout import Layout, realize
 from sitl_bridge.world.schema import Shape, World
 
-__all__ = ["Collision", "MotorCommand", "Simulation", "VehicleState"]
+__all__ = ["Collision", "MotorCommand", "PhysicsError", "Simulation", "VehicleState"]
 
 Vec3 = tuple[float, float, float]
 _WORLD_FRAME = p.WORLD_FRAME
@@ -38,6 +38,10 @@ _WORLD_FRAME = p.WORLD_FRAME
 GROUND_SNAP_M = 0.02
 #: Physics steps run before time 0 so vehicles spawned on the ground start settled on it.
 SETTLE_STEPS = 100
+
+
+class PhysicsError(RuntimeError):
+    """The physics blew up (non-finite state); the simulation must be reset."""
 
 
 def _bounding_radius_m(shape: Shape) -> float:
@@ -70,12 +74,12 @@ class Simulation:
     Args:
         world: the loaded world (see `sitl_bridge.world.load_world`).
         seed: seeds the layout randomisation and the movers; same world + seed -> same run.
-        step_us: physics step in integer microseconds (default 4000 = PX4's 250 Hz lockstep);
-            None takes the world's `physics.step_us`.
+        step_us: physics step in integer microseconds; None (default) takes the world's
+            `physics.step_us`, itself 4000 (PX4's 250 Hz lockstep) unless the world says otherwise.
         gui: open pybullet's GUI instead of DIRECT (one GUI per process).
     """
 
-    def __init__(self, world: World, *, seed: int = 0, step_us: int | None = 4000, gui: bool = False,
+    def __init__(self, world: World, *, seed: int = 0, step_us: int | None = None, gui: bool = False,
                  params: IrisParams | None = None) -> None:
         self.world = world
         self.step_us = int(step_us if step_us is not None else world.physics.step_us)
@@ -321,6 +325,10 @@ class Simulation:
         cid = self.client_id
         pos, orn = p.getBasePositionAndOrientation(v.body, physicsClientId=cid)
         lin, ang = p.getBaseVelocity(v.body, physicsClientId=cid)
+        check = pos[0] + pos[1] + pos[2] + lin[0] + lin[1] + lin[2]
+        if not -1e7 < check < 1e7:  # NaN fails too
+            raise PhysicsError(f"vehicle {v.name}: state is no longer finite (position {pos}, velocity {lin})"
+                               "; reset the simulation")
         q = (orn[3], orn[0], orn[1], orn[2])
         rotation = quat_to_matrix_t(q)
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation

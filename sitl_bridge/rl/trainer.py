@@ -112,6 +112,8 @@ class Trainer:
         self._kept: list[tuple[Path, int]] = []  # (checkpoint, replay rows it needs)
         self._writer: Any = None
         self.stopped_early = False
+        self.last_eval: EvalResult | None = None
+        """The latest greedy evaluation of this session."""
         """True when a greedy evaluation reached `stop_on_success` (the run counts as done)."""
 
     # -- construction -------------------------------------------------------------------
@@ -147,6 +149,8 @@ class Trainer:
         if env_factory is None:
             from sitl_bridge.rl.drones_env import scenario_env_factory
             env_factory = scenario_env_factory(spec.world, spec.autopilot)
+        for stale in [*run_dir.glob(".*.tmp*"), *run_dir.glob("*/.*.tmp*")]:
+            stale.unlink()  # half-written temp files of a killed session (never renamed into place)
         trainer = cls(run_dir, spec, config, env_factory, **kwargs)
         if ckpt.list_checkpoints(trainer.checkpoint_dir):
             ckpt.restore_newest(trainer.checkpoint_dir, trainer._restore, warn=trainer.warn)
@@ -295,6 +299,7 @@ class Trainer:
             self._writer.add_scalar("eval/success_rate", result.success_rate, self.episode - 1)
             self._writer.add_scalar("eval/crash_rate", result.crash_rate, self.episode - 1)
             self._writer.add_scalar("eval/mean_reward", result.mean_reward, self.episode - 1)
+        self.last_eval = result
         return result
 
     def success_rate(self) -> float:

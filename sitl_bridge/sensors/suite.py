@@ -180,21 +180,25 @@ class SensorFrame:
 
 
 class _NoiseBlock:
-    """Standard normal draws, `columns` per sample, drawn `rows` at a time from one generator."""
+    """Standard normal draws, `columns` per sample, drawn `rows` at a time from one generator
+    (one numpy call per block instead of one per sample)."""
 
     def __init__(self, rng: np.random.Generator, columns: int, rows: int) -> None:
         self._rng = rng
         self._columns = columns
-        self._rows = rows
-        self._block: list[list[float]] = []
-        self._next = 0
+        self.rows = rows
+        self.block: list[list[float]] = []
+        self.next = rows  # empty: the first take() draws a block
+
+    def refill(self) -> None:
+        self.block = self._rng.standard_normal((self.rows, self._columns)).tolist()
+        self.next = 0
 
     def take(self) -> list[float]:
-        if self._next >= len(self._block):
-            self._block = self._rng.standard_normal((self._rows, self._columns)).tolist()
-            self._next = 0
-        row = self._block[self._next]
-        self._next += 1
+        if self.next >= self.rows:
+            self.refill()
+        row = self.block[self.next]
+        self.next += 1
         return row
 
 
@@ -249,14 +253,21 @@ class SensorSuite:
         position_enu, q_enu_flu, velocity_enu, omega_flu, force_flu, accel_enu = state.raw
 
         # IMU: specific force and rates in FRD, white noise, clamped to PX4's FIFO range
-        nz = self._imu_noise.take()
+        noise = self._imu_noise
+        if noise.next >= noise.rows:
+            noise.refill()
+        nz = noise.block[noise.next]
+        noise.next += 1
         sa, sg = self._sigma_accel, self._sigma_gyro
         fx, fy, fz = flu_to_frd_xyz(*force_flu)
         gx, gy, gz = flu_to_frd_xyz(*omega_flu)
-        accel = np.array((_clamp(fx + sa * nz[0], ACCEL_LIMIT_M_S2), _clamp(fy + sa * nz[1], ACCEL_LIMIT_M_S2),
-                          _clamp(fz + sa * nz[2], ACCEL_LIMIT_M_S2)))
-        gyro = np.array((_clamp(gx + sg * nz[3], GYRO_LIMIT_RAD_S), _clamp(gy + sg * nz[4], GYRO_LIMIT_RAD_S),
-                         _clamp(gz + sg * nz[5], GYRO_LIMIT_RAD_S)))
+        imu = [fx + sa * nz[0], fy + sa * nz[1], fz + sa * nz[2], gx + sg * nz[3], gy + sg * nz[4], gz + sg * nz[5]]
+        a_max, g_max = ACCEL_LIMIT_M_S2, GYRO_LIMIT_RAD_S
+        if not (-a_max < imu[0] < a_max and -a_max < imu[1] < a_max and -a_max < imu[2] < a_max
+                and -g_max < imu[3] < g_max and -g_max < imu[4] < g_max and -g_max < imu[5] < g_max):
+            imu = [_clamp(x, a_max) for x in imu[:3]] + [_clamp(x, g_max) for x in imu[3:]]
+        accel = np.array(imu[:3])
+        gyro = np.array(imu[3:])
 
         # ground truth in PX4's frames
         q_ned_frd = quat_enu_flu_to_ned_frd_t(q_enu_flu)

@@ -82,25 +82,58 @@ def realize(world: World, rng: np.random.Generator) -> Layout:
     vehicle_goals = tuple(v.goal for v in world.vehicles)
     obstacles = []
     for o in world.obstacles:
-        shape, position, yaw = o.shape, o.position_m, o.yaw_rad
-        r = o.randomize
-        if r is not None:
-            if r.variants:
-                shape = r.variants[int(rng.integers(len(r.variants)))]
-            if r.along_path is not None:
-                a = r.along_path
-                start = spawns[a.vehicle]
-                goal_index = vehicle_goals[a.vehicle]
-                assert goal_index is not None  # checked by the loader
-                end = goals[goal_index].center_m
-                t = _uniform(rng, a.fraction[0], a.fraction[1])
-                dx, dy = end[0] - start[0], end[1] - start[1]
-                norm = math.hypot(dx, dy) or 1.0
-                side = _uniform(rng, -a.lateral_m, a.lateral_m)
-                # perpendicular (left of the path) offset, horizontal
-                position = (start[0] + t * dx - side * dy / norm, start[1] + t * dy + side * dx / norm,
-                            shape.half_height_m)
-            position = tuple(p + _uniform(rng, -d, d) for p, d in zip(position, r.position_m, strict=True))  # type: ignore[assignment]
-            yaw = yaw + _uniform(rng, -r.yaw_rad, r.yaw_rad)
-        obstacles.append(ObstaclePlacement(o.name, shape, position, yaw, o))
+        placement = _place_obstacle(o, rng, spawns, goals, vehicle_goals)
+        if o.randomize is not None:
+            # a randomised obstacle must neither bury a spawn nor fill a goal: redraw (seeded)
+            for _ in range(MAX_REDRAWS):
+                if _clear_of(placement, spawns, goals):
+                    break
+                placement = _place_obstacle(o, rng, spawns, goals, vehicle_goals)
+        obstacles.append(placement)
     return Layout(tuple(spawns), tuple(yaws), tuple(goals), vehicle_goals, tuple(obstacles))
+
+
+#: Redraws of a randomised obstacle that lands on a spawn or a goal before giving up (keeping it).
+MAX_REDRAWS = 50
+#: Horizontal clearance (m) kept between a randomised obstacle and spawns / goal centres.
+CLEARANCE_M = 0.5
+
+
+def _place_obstacle(o: Obstacle, rng: np.random.Generator, spawns: list[Vec3], goals: list[GoalPlacement],
+                    vehicle_goals: tuple[int | None, ...]) -> ObstaclePlacement:
+    shape, position, yaw = o.shape, o.position_m, o.yaw_rad
+    r = o.randomize
+    if r is not None:
+        if r.variants:
+            shape = r.variants[int(rng.integers(len(r.variants)))]
+        if r.along_path is not None:
+            a = r.along_path
+            start = spawns[a.vehicle]
+            goal_index = vehicle_goals[a.vehicle]
+            assert goal_index is not None  # checked by the loader
+            end = goals[goal_index].center_m
+            t = _uniform(rng, a.fraction[0], a.fraction[1])
+            dx, dy = end[0] - start[0], end[1] - start[1]
+            norm = math.hypot(dx, dy) or 1.0
+            side = _uniform(rng, -a.lateral_m, a.lateral_m)
+            # perpendicular (left of the path) offset, horizontal; resting on the ground
+            position = (start[0] + t * dx - side * dy / norm, start[1] + t * dy + side * dx / norm,
+                        shape.half_height_m)
+        position = tuple(p + _uniform(rng, -d, d) for p, d in zip(position, r.position_m, strict=True))  # type: ignore[assignment]
+        yaw = yaw + _uniform(rng, -r.yaw_rad, r.yaw_rad)
+    return ObstaclePlacement(o.name, shape, position, yaw, o)
+
+
+def horizontal_radius_m(shape: Shape) -> float:
+    """Radius of a vertical cylinder around the shape's centre that contains it."""
+    if shape.kind in ("sphere", "cylinder"):
+        return shape.radius_m or 0.0
+    sx, sy, _ = shape.size_m or (0.0, 0.0, 0.0)
+    return 0.5 * math.hypot(sx, sy)
+
+
+def _clear_of(placement: ObstaclePlacement, spawns: list[Vec3], goals: list[GoalPlacement]) -> bool:
+    reach = horizontal_radius_m(placement.shape) + CLEARANCE_M
+    x, y, _ = placement.position_m
+    points = [s[:2] for s in spawns] + [g.center_m[:2] for g in goals]
+    return all(math.hypot(px - x, py - y) > reach for px, py in points)

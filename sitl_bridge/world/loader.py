@@ -110,10 +110,10 @@ def _parse_home(node: Node) -> GeoHome:
     node.reject_unknown({"lat", "lon", "alt", "magnetic_year"})
     default = GeoHome()
     return GeoHome(
-        lat_deg=node.get("lat", default.lat_deg).number(minimum=-89.0, maximum=89.0),
-        lon_deg=node.get("lon", default.lon_deg).number(minimum=-180.0, maximum=180.0),
-        alt_m=node.get("alt", default.alt_m).number(minimum=-500.0, maximum=9000.0),
-        magnetic_year=node.get("magnetic_year", default.magnetic_year).number(minimum=2020.0, maximum=2030.0),
+        lat_deg=_num(node.get("lat", default.lat_deg), minimum=-89.0, maximum=89.0),
+        lon_deg=_num(node.get("lon", default.lon_deg), minimum=-180.0, maximum=180.0),
+        alt_m=_num(node.get("alt", default.alt_m), minimum=-500.0, maximum=9000.0),
+        magnetic_year=_num(node.get("magnetic_year", default.magnetic_year), minimum=2025.0, maximum=2029.99),  # WMM2025
     )
 
 
@@ -123,10 +123,10 @@ def _parse_physics(node: Node) -> PhysicsSettings:
     d = PhysicsSettings()
     return PhysicsSettings(
         step_us=node.get("step_us", d.step_us).integer(minimum=100, maximum=100_000),
-        gravity_m_s2=node.get("gravity", d.gravity_m_s2).number(non_negative=True),
+        gravity_m_s2=_num(node.get("gravity", d.gravity_m_s2), non_negative=True),
         solver_iterations=node.get("solver_iterations", d.solver_iterations).integer(minimum=1, maximum=500),
-        hard_ground_speed_m_s=node.get("hard_ground_speed", d.hard_ground_speed_m_s).number(positive=True),
-        crash_tilt_deg=node.get("crash_tilt", d.crash_tilt_deg).number(positive=True, maximum=180.0),
+        hard_ground_speed_m_s=_num(node.get("hard_ground_speed", d.hard_ground_speed_m_s), positive=True),
+        crash_tilt_deg=_num(node.get("crash_tilt", d.crash_tilt_deg), positive=True, maximum=180.0),
     )
 
 
@@ -134,9 +134,9 @@ def _parse_box(node: Node, what: str, *, strict: bool = True) -> Workspace:
     node.mapping()
     if strict:
         node.reject_unknown({"min", "max"})
-    lo = node.get("min").vector(3)
+    lo = _vec(node.get("min"), 3)
     hi_node = node.get("max")
-    hi = hi_node.vector(3)
+    hi = _vec(hi_node, 3)
     if not all(high > low for low, high in zip(lo, hi, strict=True)):
         raise hi_node.error(f"3 numbers each greater than {what}.min {list(lo)}")
     return Workspace(lo, hi)
@@ -146,8 +146,8 @@ def _parse_goal(node: Node) -> GoalRegion:
     node.mapping()
     node.reject_unknown({"name", "center", "size", "randomize"})
     name = node.get("name").string()
-    center = node.get("center").vector(3)
-    size = node.get("size").vector(3, positive=True)
+    center = _vec(node.get("center"), 3)
+    size = _vec(node.get("size"), 3, positive=True)
     rmin = rmax = None
     if node.has("randomize"):
         box = _parse_box(node.get("randomize"), "randomize")
@@ -158,15 +158,15 @@ def _parse_goal(node: Node) -> GoalRegion:
 def _parse_spawn(node: Node) -> Spawn:
     node.mapping()
     node.reject_unknown({"position", "yaw", "randomize"})
-    position = node.get("position").vector(3)
-    yaw = math.radians(node.get("yaw", 0.0).number(minimum=-360.0, maximum=360.0))
+    position = _vec(node.get("position"), 3)
+    yaw = math.radians(_num(node.get("yaw", 0.0), minimum=-360.0, maximum=360.0))
     rpos, ryaw = (0.0, 0.0, 0.0), 0.0
     if node.has("randomize"):
         r = node.get("randomize")
         r.mapping()
         r.reject_unknown({"position", "yaw"})
-        rpos = r.get("position", [0.0, 0.0, 0.0]).vector(3, non_negative=True)
-        ryaw = math.radians(r.get("yaw", 0.0).number(non_negative=True, maximum=180.0))
+        rpos = _vec(r.get("position", [0.0, 0.0, 0.0]), 3, non_negative=True)
+        ryaw = math.radians(_num(r.get("yaw", 0.0), non_negative=True, maximum=180.0))
     return Spawn(position, yaw, rpos, ryaw)
 
 
@@ -182,11 +182,11 @@ def _parse_lidar(node: Node) -> LidarConfig:
         g.reject_unknown({"rays", "fov"})
         max_fov = 360.0 if group == "horizontal" else 180.0
         groups[group] = (g.get("rays", rays).integer(minimum=0, maximum=1000),
-                         g.get("fov", fov).number(non_negative=True, maximum=max_fov))
-    range_m = node.get("range", d.range_m).number(positive=True)
-    near = node.get("near", d.near_m).number(non_negative=True, maximum=range_m)
+                         _num(g.get("fov", fov), non_negative=True, maximum=max_fov))
+    range_m = _num(node.get("range", d.range_m), positive=True)
+    near = _num(node.get("near", d.near_m), non_negative=True, maximum=range_m)
     crash_node = node.get("crash", d.crash_m)
-    crash = crash_node.number(non_negative=True)
+    crash = _num(crash_node, non_negative=True)
     if crash > near:
         raise crash_node.error(f"a distance not above near ({near:g})")
     flags_node = node.get("flags", list(d.flag_groups))
@@ -222,20 +222,20 @@ def _parse_shape(node: Node, base_dir: Path, kind_key: str = "shape") -> Shape:
     """Shape fields of an obstacle or variant node (keys: shape, size, radius, height, opening, file, scale)."""
     kind = node.get(kind_key).string(SHAPE_KINDS)
     if kind in ("box", "wall"):
-        size = node.get("size").vector(3, positive=True)
+        size = _vec(node.get("size"), 3, positive=True)
         opening = _parse_opening(node.get("opening"), size) if kind == "wall" and node.has("opening") else None
         return Shape(kind, size_m=size, opening=opening)
     if kind == "cylinder":
-        return Shape(kind, radius_m=node.get("radius").number(positive=True),
-                     height_m=node.get("height").number(positive=True))
+        return Shape(kind, radius_m=_num(node.get("radius"), positive=True),
+                     height_m=_num(node.get("height"), positive=True))
     if kind == "sphere":
-        return Shape(kind, radius_m=node.get("radius").number(positive=True))
+        return Shape(kind, radius_m=_num(node.get("radius"), positive=True))
     file_node = node.get("file")
     mesh_path = (base_dir / file_node.string()).resolve()
     if not mesh_path.is_file():
         raise file_node.error("a mesh file (.obj) relative to the world file")
-    scale = node.get("scale", [1.0, 1.0, 1.0]).vector(3, positive=True)
-    size = node.get("size").vector(3, positive=True)  # bounding box, for placement on the ground
+    scale = _vec(node.get("scale", [1.0, 1.0, 1.0]), 3, positive=True)
+    size = _vec(node.get("size"), 3, positive=True)  # bounding box, for placement on the ground
     return Shape(kind, size_m=size, mesh_file=str(mesh_path), mesh_scale=scale)
 
 
@@ -243,10 +243,10 @@ def _parse_opening(node: Node, wall_size: tuple[float, ...]) -> Opening:
     node.mapping()
     node.reject_unknown({"offset", "bottom", "width", "height"})
     o = Opening(
-        offset_m=node.get("offset", 0.0).number(),
-        bottom_m=node.get("bottom").number(non_negative=True),
-        width_m=node.get("width").number(positive=True),
-        height_m=node.get("height").number(positive=True),
+        offset_m=_num(node.get("offset", 0.0)),
+        bottom_m=_num(node.get("bottom"), non_negative=True),
+        width_m=_num(node.get("width"), positive=True),
+        height_m=_num(node.get("height"), positive=True),
     )
     length, _, height = wall_size
     if abs(o.offset_m) + o.width_m / 2.0 > length / 2.0 or o.bottom_m + o.height_m > height:
@@ -262,11 +262,11 @@ def _parse_obstacle(node: Node, base_dir: Path, vehicle_index: dict[str, int]) -
     node.reject_unknown(SHAPE_KEYS | {"name", "position", "yaw", "color", "mover", "mass", "randomize"})
     name = node.get("name").string()
     shape = _parse_shape(node, base_dir)
-    position = node.get("position").vector(3)
-    yaw = math.radians(node.get("yaw", 0.0).number(minimum=-360.0, maximum=360.0))
-    color = node.get("color", [0.6, 0.6, 0.6, 1.0]).vector(4, non_negative=True)
+    position = _vec(node.get("position"), 3)
+    yaw = math.radians(_num(node.get("yaw", 0.0), minimum=-360.0, maximum=360.0))
+    color = _vec(node.get("color", [0.6, 0.6, 0.6, 1.0]), 4, non_negative=True)
     mover = _parse_mover(node.get("mover")) if node.has("mover") else None
-    mass = node.get("mass", 1.0).number(positive=True)
+    mass = _num(node.get("mass", 1.0), positive=True)
     randomize = None
     if node.has("randomize"):
         if mover is not None:
@@ -280,10 +280,10 @@ def _parse_obstacle(node: Node, base_dir: Path, vehicle_index: dict[str, int]) -
 def _parse_mover(node: Node) -> PatrolMover | RandomLegsMover:
     node.mapping()
     kind = node.get("type").string(("patrol", "random_legs"))
-    speed = node.get("speed").number(positive=True)
+    speed = _num(node.get("speed"), positive=True)
     if kind == "patrol":
         node.reject_unknown({"type", "speed", "points"})
-        points = tuple(p.vector(3) for p in node.get("points").list(min_len=2))
+        points = tuple(_vec(p, 3) for p in node.get("points").list(min_len=2))
         return PatrolMover(points, speed)
     node.reject_unknown({"type", "speed", "min", "max"})
     box = _parse_box(node, "mover", strict=False)
@@ -303,15 +303,31 @@ def _parse_obstacle_randomization(node: Node, base_dir: Path, vehicle_index: dic
         if vname not in vehicle_index:
             raise vnode.error(f"the name of a vehicle ({', '.join(vehicle_index)})")
         fnode = a.get("fraction")
-        lo, hi = fnode.vector(2, non_negative=True)
+        lo, hi = _vec(fnode, 2, non_negative=True)
         if not lo <= hi <= 1.0:
             raise fnode.error("[low, high] with 0 <= low <= high <= 1")
-        along = AlongPath(vehicle_index[vname], (lo, hi), a.get("lateral", 0.0).number(non_negative=True))
-    position = node.get("position", [0.0, 0.0, 0.0]).vector(3, non_negative=True)
-    yaw = math.radians(node.get("yaw", 0.0).number(non_negative=True, maximum=180.0))
+        along = AlongPath(vehicle_index[vname], (lo, hi), _num(a.get("lateral", 0.0), non_negative=True))
+    position = _vec(node.get("position", [0.0, 0.0, 0.0]), 3, non_negative=True)
+    yaw = math.radians(_num(node.get("yaw", 0.0), non_negative=True, maximum=180.0))
     variants = []
     for v in node.get("variants", []).list():
         v.mapping()
         v.reject_unknown(SHAPE_KEYS)
         variants.append(_parse_shape(v, base_dir))
     return ObstacleRandomization(along, position, yaw, tuple(variants))
+
+
+def _vec(node: Node, length: int = 3, **kwargs: bool) -> tuple[float, ...]:
+    """`Node.vector`, also refusing inf (YAML's .inf would otherwise reach the physics)."""
+    values = node.vector(length, **kwargs)
+    if not all(math.isfinite(v) for v in values):
+        raise node.error(f"{length} finite numbers")
+    return values
+
+
+def _num(node: Node, **kwargs: float | bool | None) -> float:
+    """`Node.number`, also refusing inf."""
+    value = node.number(**kwargs)  # type: ignore[arg-type]
+    if not math.isfinite(value):
+        raise node.error("a finite number")
+    return value

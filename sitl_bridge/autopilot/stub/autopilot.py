@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from sitl_bridge.physics.simulation import MotorCommand
 
 from .commander import Commander, Home, Output
-from .control import AttitudeControl, PositionControl, RateControl, body_z_to_attitude
+from .control import AttitudeControl, PositionControl, RateControl, Setpoint, body_z_to_attitude
 from .estimator import Estimate, GroundTruthEstimator, SensorEstimator
 from .mixer import QuadGeometry, QuadXMixer
 from .modes import CommandResult, LandedState, system_id_for
@@ -24,6 +24,8 @@ if TYPE_CHECKING:
     from sitl_bridge.sensors import SensorFrame
 
 _NAN = float("nan")
+#: period of the position/velocity loop (the attitude and rate loops run every step)
+POSITION_CONTROL_PERIOD_US = 8000
 _OFF = MotorCommand((0.0, 0.0, 0.0, 0.0), False)
 _IDLE = MotorCommand((0.0, 0.0, 0.0, 0.0), True)
 
@@ -56,6 +58,7 @@ class StubAutopilot:
         self.attitude_setpoint: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
         self.steps = 0
         self._last_time_us: int | None = None
+        self._position_due_us: int | None = None
 
     # --- lockstep ----------------------------------------------------------------------------
     def update(self, frame: SensorFrame) -> MotorCommand:
@@ -69,28 +72,38 @@ class StubAutopilot:
             self.position_control.reset()
             self.rate_control.reset()
             self.thrust_collective = 0.0
+            self._position_due_us = None
             self.last_command = _IDLE if output is Output.IDLE else _OFF
             return self.last_command
 
+        due = self._position_due_us
+        if due is None or frame.time_us >= due or frame.time_us < due - POSITION_CONTROL_PERIOD_US:
+            # the outer loop runs at ~125 Hz like PX4's mc_pos_control on EKF2 output
+            pos_dt_s = POSITION_CONTROL_PERIOD_US * 1e-6 if due is not None else dt_s
+            self._position_due_us = frame.time_us + POSITION_CONTROL_PERIOD_US
+            self._outer_loop(est, sp, pos_dt_s)
+        thrust = self.thrust_collective
+        q_sp = self.attitude_setpoint
+        yaw_rate_ff = sp.yaw_rate_rad_s if sp.yaw_rate_rad_s == sp.yaw_rate_rad_s else 0.0
+        rate_sp = self.attitude_control.update(est.quaternion_ned_frd, q_sp, yaw_rate_ff)
+        torque = self.rate_control.update(dt_s, est.angular_velocity_frd_rad_s, rate_sp,
+                                          self.mixer.saturated, self.commander.landed)
+        self.last_command = MotorCommand(self.mixer.mix(thrust, torque), True)
+        return self.last_command
+
+    def _outer_loop(self, est: Estimate, sp: Setpoint, dt_s: float) -> None:
+        """Position/velocity control -> collective thrust and attitude setpoint."""
         pc = self.position_control
         thr = pc.update(dt_s, sp, est.position_ned_m, est.velocity_ned_m_s, est.accel_ned_m_s2)
         if self.commander.maybe_landed:
             # PX4 drops the thrust to idle when it suspects a landing: confirms or refutes it
             pc.reset()
             thr = (0.0, 0.0, -self.params["MPC_THR_MIN"])
-        thrust = math.sqrt(thr[0] * thr[0] + thr[1] * thr[1] + thr[2] * thr[2])
         yaw = sp.yaw_rad
         if yaw != yaw:
             yaw = est.euler_rad[2]
-        q_sp = body_z_to_attitude((-thr[0], -thr[1], -thr[2]), yaw)
-        self.attitude_setpoint = q_sp
-        yaw_rate_ff = sp.yaw_rate_rad_s if sp.yaw_rate_rad_s == sp.yaw_rate_rad_s else 0.0
-        rate_sp = self.attitude_control.update(est.quaternion_ned_frd, q_sp, yaw_rate_ff)
-        torque = self.rate_control.update(dt_s, est.angular_velocity_frd_rad_s, rate_sp,
-                                          self.mixer.saturated, self.commander.landed)
-        self.thrust_collective = thrust
-        self.last_command = MotorCommand(self.mixer.mix(thrust, torque), True)
-        return self.last_command
+        self.thrust_collective = math.sqrt(thr[0] * thr[0] + thr[1] * thr[1] + thr[2] * thr[2])
+        self.attitude_setpoint = body_z_to_attitude((-thr[0], -thr[1], -thr[2]), yaw)
 
     # --- commander -----------------------------------------------------------------------------
     def arm(self) -> CommandResult:
@@ -116,6 +129,10 @@ class StubAutopilot:
     def return_to_launch(self) -> CommandResult:
         """AUTO.RTL."""
         return self.commander.return_to_launch()
+
+    def reposition(self, position_ned_m: Sequence[float], yaw_rad: float | None = None) -> CommandResult:
+        """Fly to and hold a local NED position in AUTO.LOITER (DO_REPOSITION); in the air only."""
+        return self.commander.reposition(tuple(position_ned_m), yaw_rad)  # type: ignore[arg-type]
 
     def set_mode(self, main_mode: int, sub_mode: int) -> CommandResult:
         """PX4 main/sub mode switch (DO_SET_MODE params 2 and 3)."""

@@ -70,6 +70,12 @@ def _finite(x: float) -> bool:
     return x == x and x not in (math.inf, -math.inf)
 
 
+def _nan_if_not_finite(x: float) -> float:
+    """Setpoint components are finite or NaN (= not controlled); inf would poison the control."""
+    x = float(x)
+    return x if _finite(x) else _NAN
+
+
 class Commander:
     """Vehicle state machine; see module docstring. Methods return `CommandResult`."""
 
@@ -199,6 +205,17 @@ class Commander:
         self._enter(RTL)
         return CommandResult.ACCEPTED
 
+    def reposition(self, position_ned_m: Vec3, yaw_rad: float | None = None) -> CommandResult:
+        """Hold (AUTO.LOITER) at a new local position, like PX4's DO_REPOSITION; in the air only."""
+        e = self.estimate
+        if e is None or not e.position_valid or not self.armed or self.landed:
+            return CommandResult.TEMPORARILY_REJECTED
+        self._enter(HOLD)
+        self._hold_position = tuple(float(x) for x in position_ned_m)  # type: ignore[assignment]
+        if yaw_rad is not None:
+            self._yaw_sp = float(yaw_rad)
+        return CommandResult.ACCEPTED
+
     def set_mode(self, main_mode: int, sub_mode: int) -> CommandResult:
         """DO_SET_MODE with PX4 main/sub modes; RC-only modes are refused (no RC in sim)."""
         if main_mode == MainMode.OFFBOARD:
@@ -227,9 +244,9 @@ class Commander:
                               yaw_rad: float = _NAN, yaw_rate_rad_s: float = _NAN) -> None:
         """Store an offboard setpoint (NaN components are not controlled), stamped with sim time."""
         self.offboard = OffboardSetpoint(
-            tuple(float(x) for x in position_ned_m),  # type: ignore[arg-type]
-            tuple(float(x) for x in velocity_ned_m_s),  # type: ignore[arg-type]
-            float(yaw_rad), float(yaw_rate_rad_s), self.time_us,
+            tuple(_nan_if_not_finite(x) for x in position_ned_m),  # type: ignore[arg-type]
+            tuple(_nan_if_not_finite(x) for x in velocity_ned_m_s),  # type: ignore[arg-type]
+            _nan_if_not_finite(yaw_rad), _nan_if_not_finite(yaw_rate_rad_s), self.time_us,
         )
 
     def _offboard_fresh(self) -> bool:
@@ -243,8 +260,7 @@ class Commander:
         e = self.estimate
         previous = (self.main_mode, self.sub_mode)
         self.main_mode, self.sub_mode = int(mode[0]), int(mode[1])
-        if mode != OFFBOARD:
-            self.failsafe_active = False if mode != previous else self.failsafe_active
+        self.failsafe_active = False   # a failsafe sets it again right after entering its mode
         if e is None:
             return
         if mode == HOLD:
@@ -319,9 +335,9 @@ class Commander:
         self._text(3, "Failsafe: offboard signal lost")
         if action == 7:
             self._disarm("offboard loss failsafe")
-        elif action == 3:
-            self.return_to_launch() if self.home is not None else self._enter(LAND)
-        elif action == 4:
+        elif action == 3 and self.return_to_launch() is CommandResult.ACCEPTED:
+            pass
+        elif action in (3, 4):
             self._enter(LAND)
         else:
             # 0-2 fall back to an RC mode; without RC PX4 holds (as does 5 = Hold)

@@ -30,7 +30,7 @@ _NAN = float("nan")
 
 @dataclass
 class Setpoint:
-    """What the position controller tracks; NaN components are not controlled.
+    """What the position controller tracks; NaN components are not controlled (never inf).
 
     position_ned_m and velocity_ned_m_s may both be set (velocity is then a feed-forward).
     """
@@ -41,10 +41,6 @@ class Setpoint:
     yaw_rate_rad_s: float = _NAN
     max_velocity_up_m_s: float = _NAN      # overrides MPC_Z_VEL_MAX_UP (takeoff, landing)
     max_velocity_down_m_s: float = _NAN
-
-
-def _finite(x: float) -> bool:
-    return x == x and x not in (math.inf, -math.inf)
 
 
 def _limit_tilt(body_z: Vec3, max_tilt_rad: float) -> Vec3:
@@ -100,7 +96,6 @@ class PositionControl:
         self.velocity_integral = [0.0, 0.0, 0.0]   # m/s^2
         self.velocity_setpoint_ned_m_s: Vec3 = (0.0, 0.0, 0.0)
         self.thrust_setpoint_ned: Vec3 = (0.0, 0.0, -params["MPC_THR_HOVER"])
-        self.hover_thrust = params["MPC_THR_HOVER"]
 
     def reset(self) -> None:
         """Clear the integrators (on the ground, on mode changes that need it)."""
@@ -110,31 +105,38 @@ class PositionControl:
                accel_ned_m_s2: Vec3) -> Vec3:
         """Thrust setpoint in NED, normalised (|thrust| = fraction of full collective thrust)."""
         p = self.params.values
-        # --- position P (+ velocity feed-forward), PX4 _positionControl
-        vel_sp = [0.0, 0.0, 0.0]
-        for k, gain in ((0, p["MPC_XY_P"]), (1, p["MPC_XY_P"]), (2, p["MPC_Z_P"])):
-            pos_sp = sp.position_ned_m[k]
-            ff = sp.velocity_ned_m_s[k]
-            v = (pos_sp - position_ned_m[k]) * gain if _finite(pos_sp) else 0.0
-            if _finite(ff):
-                v += ff
-            elif not _finite(pos_sp):
-                v = 0.0  # neither position nor velocity: brake
-            vel_sp[k] = v
+        # --- position P (+ velocity feed-forward), PX4 _positionControl. NaN = not controlled
+        # (x == x is False only for NaN; setpoints are sanitised to finite-or-NaN on entry).
+        psp, vff = sp.position_ned_m, sp.velocity_ned_m_s
+        gain_xy, gain_z = p["MPC_XY_P"], p["MPC_Z_P"]
+        vx = (psp[0] - position_ned_m[0]) * gain_xy if psp[0] == psp[0] else 0.0
+        vy = (psp[1] - position_ned_m[1]) * gain_xy if psp[1] == psp[1] else 0.0
+        vz = (psp[2] - position_ned_m[2]) * gain_z if psp[2] == psp[2] else 0.0
+        if vff[0] == vff[0]:
+            vx += vff[0]
+        if vff[1] == vff[1]:
+            vy += vff[1]
+        if vff[2] == vff[2]:
+            vz += vff[2]
         xy_max = p["MPC_XY_VEL_MAX"]
-        speed_xy = math.hypot(vel_sp[0], vel_sp[1])
+        speed_xy = math.sqrt(vx * vx + vy * vy)
         if speed_xy > xy_max:
-            vel_sp[0] *= xy_max / speed_xy
-            vel_sp[1] *= xy_max / speed_xy
-        up_max = sp.max_velocity_up_m_s if _finite(sp.max_velocity_up_m_s) else p["MPC_Z_VEL_MAX_UP"]
-        down_max = sp.max_velocity_down_m_s if _finite(sp.max_velocity_down_m_s) else p["MPC_Z_VEL_MAX_DN"]
-        vel_sp[2] = clamp(vel_sp[2], -up_max, down_max)
-        self.velocity_setpoint_ned_m_s = (vel_sp[0], vel_sp[1], vel_sp[2])
+            vx *= xy_max / speed_xy
+            vy *= xy_max / speed_xy
+        up_max = sp.max_velocity_up_m_s
+        if up_max != up_max:
+            up_max = p["MPC_Z_VEL_MAX_UP"]
+        down_max = sp.max_velocity_down_m_s
+        if down_max != down_max:
+            down_max = p["MPC_Z_VEL_MAX_DN"]
+        vz = -up_max if vz < -up_max else down_max if vz > down_max else vz
+        vel_sp = (vx, vy, vz)
+        self.velocity_setpoint_ned_m_s = vel_sp
 
         # --- velocity PID -> acceleration, PX4 _velocityControl
         kp_xy, ki_xy, kd_xy = p["MPC_XY_VEL_P_ACC"], p["MPC_XY_VEL_I_ACC"], p["MPC_XY_VEL_D_ACC"]
         kp_z, ki_z, kd_z = p["MPC_Z_VEL_P_ACC"], p["MPC_Z_VEL_I_ACC"], p["MPC_Z_VEL_D_ACC"]
-        err = [vel_sp[k] - velocity_ned_m_s[k] for k in range(3)]
+        err = [vx - velocity_ned_m_s[0], vy - velocity_ned_m_s[1], vz - velocity_ned_m_s[2]]
         vi = self.velocity_integral
         acc = (
             kp_xy * err[0] + vi[0] - kd_xy * accel_ned_m_s2[0],
@@ -156,9 +158,9 @@ class PositionControl:
         # horizontal anti-windup (PX4: tracking anti-reset windup, gain 2 / P)
         if kp_xy > 1e-6:
             arw = 2.0 / kp_xy
-            to_acc = GRAVITY_M_S2 / max(self.hover_thrust, 1e-3)
-            for k in (0, 1):
-                err[k] -= arw * (acc[k] - thr[k] * to_acc)
+            to_acc = GRAVITY_M_S2 / max(p["MPC_THR_HOVER"], 1e-3)
+            err[0] -= arw * (acc[0] - thr[0] * to_acc)
+            err[1] -= arw * (acc[1] - thr[1] * to_acc)
         vi[0] += ki_xy * err[0] * dt_s
         vi[1] += ki_xy * err[1] * dt_s
         vi[2] = clamp(vi[2] + ki_z * err[2] * dt_s, -GRAVITY_M_S2, GRAVITY_M_S2)
@@ -171,7 +173,7 @@ class PositionControl:
         n = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + GRAVITY_M_S2 * GRAVITY_M_S2)
         body_z = (-acc[0] / n, -acc[1] / n, GRAVITY_M_S2 / n)
         body_z = _limit_tilt(body_z, math.radians(p["MPC_TILTMAX_AIR"]))
-        hover = self.hover_thrust
+        hover = p["MPC_THR_HOVER"]
         thrust_ned_z = acc[2] * (hover / GRAVITY_M_S2) - hover
         collective = min(thrust_ned_z / body_z[2], -p["MPC_THR_MIN"])
         return (body_z[0] * collective, body_z[1] * collective, body_z[2] * collective)

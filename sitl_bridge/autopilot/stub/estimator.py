@@ -2,10 +2,13 @@
 
 Two sources, chosen once at construction:
 - sensors (default): a Mahony-style complementary attitude filter (gyro integration corrected
-  by the accelerometer's gravity direction and the magnetometer's heading) and a fixed-gain
+  by the accelerometer's specific-force direction, compensated with the GPS-derived
+  acceleration, and by the magnetometer's heading plus the WMM declination) and a fixed-gain
   position/velocity filter per axis (accelerometer prediction, GPS position/velocity and
-  barometric height corrections, accelerometer bias states). The local NED origin is the
-  first GPS fix, like PX4's EKF origin.
+  barometric height corrections, accelerometer bias states; the baro's zero is tied to GPS
+  height). The local NED origin is the first GPS fix, like PX4's EKF origin. Like EKF2, the
+  position is reported valid (armable) only after an initial alignment of ALIGN_S (3 s of
+  simulated time) with boosted attitude gains.
 - `ground_truth_estimate=True`: copies SensorFrame.truth (clearly not what PX4 would know;
   faster and noise-free, for RL speed runs).
 """
@@ -80,7 +83,10 @@ NO_TRUTH = GroundTruth(
 
 def _floats(v) -> list[float]:
     """Python floats of a 3-vector (numpy arrays index slowly element by element)."""
-    return v.tolist() if hasattr(v, "tolist") else [float(x) for x in v]
+    try:
+        return v.tolist()
+    except AttributeError:
+        return [float(x) for x in v]
 
 
 class GroundTruthEstimator:

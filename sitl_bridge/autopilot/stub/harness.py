@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from sitl_bridge.physics import Simulation
+from sitl_bridge.physics import IrisParams, Simulation
 from sitl_bridge.sensors import SensorSuite
 from sitl_bridge.world.schema import World
 
@@ -21,11 +21,15 @@ from .params import ParamTable
 
 
 class StubHarness:
-    """Vehicle 0 of `world` flown by a StubAutopilot (see module docstring)."""
+    """Vehicle 0 of `world` flown by a StubAutopilot (see module docstring).
+
+    airframe: physics parameters of the simulated Iris (e.g. more drag); the autopilot is not
+    told, just as PX4 would not be.
+    """
 
     def __init__(self, world: World, *, seed: int = 0, ground_truth_estimate: bool = False,
-                 params: ParamTable | None = None) -> None:
-        self.sim = Simulation(world, seed=seed)
+                 params: ParamTable | None = None, airframe: IrisParams | None = None) -> None:
+        self.sim = Simulation(world, seed=seed, params=airframe)
         self.sensors = SensorSuite(world.home, seed=seed + 1, step_us=self.sim.step_us)
         self.autopilot = StubAutopilot(0, params, ground_truth_estimate=ground_truth_estimate)
 

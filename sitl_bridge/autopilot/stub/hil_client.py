@@ -43,9 +43,12 @@ log = logging.getLogger(__name__)
 d = mavlink.dialect
 
 HIL_BASE_PORT = 4560
-# PX4 asks for ground truth every 5 ms; the ground-truth estimator wants it every step
+# PX4 asks for ground truth every 5 ms (for its logs); the ground-truth estimator wants it
+# every step; the sensor-estimating stub logs nothing and asks for none (-1 = disabled),
+# which saves encoding and decoding it on every step
 PX4_STATE_INTERVAL_US = 5000
 EVERY_STEP_INTERVAL_US = 1000
+NO_STATE_INTERVAL_US = -1
 _FIELDS_MAG = 0x01C0
 _FIELDS_BARO = 0x1A00
 _LOCKSTEP_FLAG = 1
@@ -79,8 +82,9 @@ class HilClient:
 
     instance: vehicle instance i (port base_port + i); defaults to the autopilot's.
     api: the vehicle's MavlinkApi, pumped by `pump()` after the HIL messages.
-    state_interval_us: HIL_STATE_QUATERNION interval to ask for; default 5000 us like PX4,
-        every step when the autopilot estimates from ground truth.
+    state_interval_us: HIL_STATE_QUATERNION interval to ask for (SET_MESSAGE_INTERVAL param 2):
+        default every step when the autopilot estimates from ground truth, else -1 (none);
+        PX4_STATE_INTERVAL_US asks exactly what PX4 asks.
     """
 
     def __init__(self, autopilot: StubAutopilot, instance: int | None = None, host: str = "127.0.0.1",
@@ -92,8 +96,9 @@ class HilClient:
         self.port = base_port + self.instance
         self.api = api
         if state_interval_us is None:
-            state_interval_us = EVERY_STEP_INTERVAL_US if autopilot.ground_truth_estimate else PX4_STATE_INTERVAL_US
+            state_interval_us = EVERY_STEP_INTERVAL_US if autopilot.ground_truth_estimate else NO_STATE_INTERVAL_US
         self.state_interval_us = state_interval_us
+        self._wants_truth = autopilot.ground_truth_estimate
         self.stats = HilClientStats()
         self._sock: socket.socket | None = None
         self._parser = mavlink.FrameParser()
@@ -240,10 +245,11 @@ class HilClient:
                 if pending is not None and gps is not None:
                     pending.gps = gps
             elif msgid == d.MAVLINK_MSG_ID_HIL_STATE_QUATERNION:
-                self._truth = self._decode_state(frame.payload)
                 self.stats.state_msgs += 1
-                if pending is not None:
-                    pending.truth = self._truth
+                if self._wants_truth:   # only the ground-truth estimator reads it
+                    self._truth = self._decode_state(frame.payload)
+                    if pending is not None:
+                        pending.truth = self._truth
             else:
                 self.stats.other_msgs += 1
         if pending is not None:

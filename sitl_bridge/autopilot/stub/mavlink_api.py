@@ -56,6 +56,17 @@ _NAN = float("nan")
 _CMD_STRUCT_LONG = d.MAVLink_command_long_message.unpacker
 _CMD_STRUCT_INT = d.MAVLink_command_int_message.unpacker
 _PARAM_VALUE_TAIL = struct.Struct("<HH16sB")   # PARAM_VALUE after param_value
+_EARTH_RADIUS_M = 6378137.0
+# commands whose acceptance changes what HEARTBEAT says (armed flag, mode)
+_STATE_COMMANDS = frozenset((
+    d.MAV_CMD_COMPONENT_ARM_DISARM, d.MAV_CMD_NAV_TAKEOFF, d.MAV_CMD_NAV_LAND, d.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    d.MAV_CMD_DO_SET_MODE, d.MAV_CMD_DO_REPOSITION,
+))
+
+
+def _int_param(value: float) -> int | None:
+    """A command parameter as an int; None when NaN or infinite (not given)."""
+    return int(value) if value == value and abs(value) != math.inf else None
 
 
 @dataclass
@@ -309,64 +320,95 @@ class MavlinkApi:
         p1, p2, p3, p4, p5, p6, p7, command, ts, tc, _confirmation = _CMD_STRUCT_LONG.unpack(frame.payload)
         if not self._for_us(ts, tc):
             return
-        self._command(link, frame, command, (p1, p2, p3, p4, p5, p6, p7))
+        # COMMAND_LONG carries positions as degrees (params 5, 6) and altitude AMSL (param 7)
+        self._command(link, frame, command, (p1, p2, p3, p4, p5, p6, p7), relative_alt=False)
 
     def _on_command_int(self, link: _Link, frame: mavlink.Frame, _address) -> None:
-        p1, p2, p3, p4, x, y, z, command, ts, tc, _frame, _cur, _auto = _CMD_STRUCT_INT.unpack(frame.payload)
+        p1, p2, p3, p4, x, y, z, command, ts, tc, coord_frame, _cur, _auto = _CMD_STRUCT_INT.unpack(frame.payload)
         if not self._for_us(ts, tc):
             return
-        self._command(link, frame, command, (p1, p2, p3, p4, float(x), float(y), z))
+        relative = coord_frame in (d.MAV_FRAME_GLOBAL_RELATIVE_ALT, d.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
+        # x, y are degE7; INT32_MAX means "unchanged" like a NaN param
+        lat = x * 1e-7 if x != 2**31 - 1 else _NAN
+        lon = y * 1e-7 if y != 2**31 - 1 else _NAN
+        self._command(link, frame, command, (p1, p2, p3, p4, lat, lon, z), relative_alt=relative)
 
-    def _command(self, link: _Link, frame: mavlink.Frame, command: int, p: tuple[float, ...]) -> None:
+    def _command(self, link: _Link, frame: mavlink.Frame, command: int, p: tuple[float, ...], *,
+                 relative_alt: bool) -> None:
+        """Execute, ACK from compid 1 (always: MAVSDK retries and times out otherwise), then send
+        what the command asked for and a HEARTBEAT so a state change shows at once."""
         self.stats.commands += 1
-        ap = self.autopilot
-        result: int
-        if command == d.MAV_CMD_COMPONENT_ARM_DISARM:
-            if p[0] >= 0.5:
-                result = ap.arm()
-            else:
-                result = ap.disarm(force=int(p[1]) == FORCE_DISARM_MAGIC if p[1] == p[1] else False)
-        elif command == d.MAV_CMD_NAV_TAKEOFF:
-            result = ap.takeoff()
-        elif command == d.MAV_CMD_NAV_LAND:
-            result = ap.land()
-        elif command == d.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-            result = ap.return_to_launch()
-        elif command == d.MAV_CMD_DO_SET_MODE:
-            base_mode = int(p[0]) if p[0] == p[0] else 0
-            if base_mode & d.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-                result = ap.set_mode(int(p[1]) & 0xFF, int(p[2]) & 0xFF if p[2] == p[2] else 0)
-            else:
-                result = CommandResult.UNSUPPORTED
-        elif command == d.MAV_CMD_SET_MESSAGE_INTERVAL:
-            result = self._set_message_interval(link, p[0], p[1])
-        elif command == d.MAV_CMD_REQUEST_MESSAGE:
-            msgid = int(p[0]) if p[0] == p[0] else -1
-            result = CommandResult.ACCEPTED if msgid in telemetry.BUILDERS else CommandResult.DENIED
-            self._ack(link, frame, command, result)
-            if result == CommandResult.ACCEPTED and not self.send_now(msgid, link):
-                log.debug("requested message %d has no data yet", msgid)
-            self._flush(link)
-            return
-        elif command == d.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
-            self._ack(link, frame, command, CommandResult.ACCEPTED)
-            self.send_now(d.MAVLINK_MSG_ID_AUTOPILOT_VERSION, link)
-            self._flush(link)
-            return
-        elif command == d.MAV_CMD_GET_HOME_POSITION:
-            result = CommandResult.ACCEPTED if ap.home is not None else CommandResult.TEMPORARILY_REJECTED
-            self._ack(link, frame, command, result)
-            self.send_now(d.MAVLINK_MSG_ID_HOME_POSITION, link)
-            self._flush(link)
-            return
-        else:
-            result = CommandResult.UNSUPPORTED
+        try:
+            result, reply_msgid = self._execute(link, command, p, relative_alt)
+        except Exception:   # a malformed command must not kill the vehicle
+            log.exception("%s link: command %d failed", link.name, command)
+            result, reply_msgid = CommandResult.FAILED, None
+        if result == CommandResult.UNSUPPORTED:
             self.stats.unsupported_commands += 1
         self._ack(link, frame, command, result)
-        # an accepted state change is visible at once, not at the next 1 Hz heartbeat
-        if result == CommandResult.ACCEPTED and command != d.MAV_CMD_SET_MESSAGE_INTERVAL:
+        if reply_msgid is not None and not self.send_now(reply_msgid, link):
+            log.debug("requested message %d has no data yet", reply_msgid)
+        if result == CommandResult.ACCEPTED and reply_msgid is None and command in _STATE_COMMANDS:
             self.send_now(d.MAVLINK_MSG_ID_HEARTBEAT, link)
-            self._flush(link)
+        self._flush(link)
+
+    def _execute(self, link: _Link, command: int, p: tuple[float, ...],
+                 relative_alt: bool) -> tuple[CommandResult, int | None]:
+        """(result, message id to send after the ACK or None)."""
+        ap = self.autopilot
+        if command == d.MAV_CMD_COMPONENT_ARM_DISARM:
+            # like PX4: 1 arms, 0 disarms, anything else is refused; 21196 in param 2 forces
+            if p[0] == 1.0:
+                return ap.arm(), None
+            if p[0] == 0.0:
+                return ap.disarm(force=p[1] == FORCE_DISARM_MAGIC), None
+            return CommandResult.DENIED, None
+        if command == d.MAV_CMD_NAV_TAKEOFF:
+            return ap.takeoff(), None
+        if command == d.MAV_CMD_NAV_LAND:
+            return ap.land(), None
+        if command == d.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            return ap.return_to_launch(), None
+        if command == d.MAV_CMD_DO_SET_MODE:
+            base_mode, main_mode, sub_mode = _int_param(p[0]), _int_param(p[1]), _int_param(p[2])
+            if base_mode is None or not base_mode & d.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or main_mode is None:
+                return CommandResult.UNSUPPORTED, None
+            return ap.set_mode(main_mode & 0xFF, (sub_mode or 0) & 0xFF), None
+        if command == d.MAV_CMD_DO_REPOSITION:
+            return self._reposition(p, relative_alt), None
+        if command == d.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_message_interval(link, p[0], p[1]), None
+        if command == d.MAV_CMD_REQUEST_MESSAGE:
+            msgid = _int_param(p[0])
+            if msgid in telemetry.BUILDERS:
+                return CommandResult.ACCEPTED, msgid
+            return CommandResult.DENIED, None
+        if command == d.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            return CommandResult.ACCEPTED, d.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+        if command == d.MAV_CMD_GET_HOME_POSITION:
+            if ap.home is None:
+                return CommandResult.TEMPORARILY_REJECTED, None
+            return CommandResult.ACCEPTED, d.MAVLINK_MSG_ID_HOME_POSITION
+        return CommandResult.UNSUPPORTED, None
+
+    def _reposition(self, p: tuple[float, ...], relative_alt: bool) -> CommandResult:
+        """DO_REPOSITION (MAVSDK goto_location, QGC "fly here"): hold at a new global position."""
+        est = self.autopilot.estimate
+        if est.origin is None:
+            return CommandResult.TEMPORARILY_REJECTED
+        lat0, lon0, alt0 = est.origin
+        cur = est.position_ned_m
+        lat, lon, alt = p[4], p[5], p[6]
+        north = math.radians(lat - lat0) * _EARTH_RADIUS_M if lat == lat else cur[0]
+        east = math.radians(lon - lon0) * _EARTH_RADIUS_M * math.cos(math.radians(lat0)) if lon == lon else cur[1]
+        if alt == alt:
+            home = self.autopilot.home
+            alt_amsl = alt + (home.alt_amsl_m if home is not None else alt0) if relative_alt else alt
+            down = alt0 - alt_amsl
+        else:
+            down = cur[2]
+        yaw = math.radians(p[3]) if p[3] == p[3] else None
+        return self.autopilot.reposition((north, east, down), yaw)
 
     def _set_message_interval(self, link: _Link, msgid_f: float, interval_f: float) -> CommandResult:
         if msgid_f != msgid_f or int(msgid_f) not in telemetry.BUILDERS:

@@ -73,21 +73,23 @@ class QuadXMixer:
         Saturation is resolved like PX4's non-airmode allocation: yaw is given up first, then the
         collective shifts to keep roll/pitch authority, finally outputs are clipped.
         """
-        cols = self._torque_cols
+        (a0, b0, c0), (a1, b1, c1), (a2, b2, c2), (a3, b3, c3) = self._torque_cols
         tx, ty, tz = torque_norm
-        rp = [c[0] * tx + c[1] * ty for c in cols]
-        yaw = [c[2] * tz for c in cols]
-        base = [self._thrust_col[i] * thrust for i in range(4)]
-        out = [base[i] + rp[i] + yaw[i] for i in range(4)]
+        k0, k1, k2, k3 = self._thrust_col
+        # collective + roll/pitch, and yaw kept apart so it can be given up first
+        rp = (k0 * thrust + a0 * tx + b0 * ty, k1 * thrust + a1 * tx + b1 * ty,
+              k2 * thrust + a2 * tx + b2 * ty, k3 * thrust + a3 * tx + b3 * ty)
+        yaw = (c0 * tz, c1 * tz, c2 * tz, c3 * tz)
+        out = [rp[0] + yaw[0], rp[1] + yaw[1], rp[2] + yaw[2], rp[3] + yaw[3]]
         hi, lo = max(out), min(out)
         self.saturated = hi > 1.0 or lo < 0.0
         if self.saturated:
             # Reduce yaw until roll/pitch + collective fit (or yaw is gone).
-            spread_rp = max(base[i] + rp[i] for i in range(4)) - min(base[i] + rp[i] for i in range(4))
+            spread_rp = max(rp) - min(rp)
             spread = hi - lo
             if spread > 1.0 and spread > spread_rp:
                 scale = max(0.0, (1.0 - spread_rp) / (spread - spread_rp)) if spread_rp < 1.0 else 0.0
-                out = [base[i] + rp[i] + yaw[i] * scale for i in range(4)]
+                out = [rp[i] + yaw[i] * scale for i in range(4)]
                 hi, lo = max(out), min(out)
             # Shift the collective so that the differential part fits.
             if hi - lo <= 1.0:

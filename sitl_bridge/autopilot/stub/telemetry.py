@@ -44,20 +44,20 @@ class MessagePacker:
 
     def __init__(self, system_id: int, component_id: int) -> None:
         self.encoder = mavlink.FrameEncoder(system_id, component_id)
+        # per class: wire-order field names, or None plus the full layout when it has arrays
+        self._names: dict[type, tuple[str, ...] | None] = {}
         self._layouts: dict[type, list[tuple[str, int]]] = {}
 
     def pack(self, cls: type, **fields: Any) -> bytes:
         """One MAVLink 2 frame of message class `cls`; missing fields are 0."""
-        layout = self._layouts.get(cls)
-        if layout is None:
-            types = dict(zip(cls.fieldnames, cls.fieldtypes, strict=True))
-            # char arrays travel as one bytes value ("16s"), other arrays element by element
-            layout = self._layouts[cls] = [
-                (name, 0 if types[name] == "char" else length)
-                for name, length in zip(cls.ordered_fieldnames, cls.array_lengths, strict=True)
-            ]
+        names = self._names.get(cls, ())
+        if names == ():
+            names = self._learn(cls)
+        if names is not None:   # no arrays: the common, fast case
+            get = fields.get
+            return self.encoder.pack(cls, *[get(name, 0) for name in names])
         values: list[Any] = []
-        for name, length in layout:
+        for name, length in self._layouts[cls]:
             value = fields.get(name, 0)
             if length:
                 items = list(value) if value != 0 else []
@@ -66,6 +66,16 @@ class MessagePacker:
             else:
                 values.append(value)
         return self.encoder.pack(cls, *values)
+
+    def _learn(self, cls: type) -> tuple[str, ...] | None:
+        types = dict(zip(cls.fieldnames, cls.fieldtypes, strict=True))
+        # char arrays travel as one bytes value ("16s"), other arrays element by element
+        layout = [(name, 0 if types[name] == "char" else length)
+                  for name, length in zip(cls.ordered_fieldnames, cls.array_lengths, strict=True)]
+        self._layouts[cls] = layout
+        names = None if any(length for _, length in layout) else tuple(name for name, _ in layout)
+        self._names[cls] = names
+        return names
 
 
 def time_boot_ms(ap: StubAutopilot) -> int:

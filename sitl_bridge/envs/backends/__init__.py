@@ -20,7 +20,7 @@ def make_backend(autopilot: str, world: World, *, start_altitude_m: float = 2.5,
         from sitl_bridge.envs.backends.session import SessionBackend
 
         return SessionBackend(world, autopilot=autopilot, start_altitude_m=start_altitude_m,
-                              speed_factor=speed_factor, seed=seed, instance_base=instance_base,
+                              speed_factor=speed_factor, instance_base=instance_base,
                               px4_bin=px4_bin, gui=gui)
     raise ValueError(f"autopilot must be one of {', '.join(AUTOPILOTS)}, got {autopilot!r}")
 

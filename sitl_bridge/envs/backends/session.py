@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import tempfile
+import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -40,12 +41,15 @@ from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.session import SimSession
 from sitl_bridge.world import World
 
+SETPOINT_DELIVERY_TIMEOUT_S = 2.0
+"""Wall seconds a velocity setpoint may take from MAVSDK to an in-process stub."""
+
 
 class SessionBackend:
     """A `SimSession` with a MAVSDK `Fleet`, flown through the Backend API."""
 
     def __init__(self, world: World, *, autopilot: str, start_altitude_m: float,
-                 speed_factor: float = 0.0, seed: int = 0, instance_base: int = 0,
+                 speed_factor: float = 0.0, instance_base: int = 0,
                  px4_bin: str | None = None, gui: bool = False) -> None:
         if autopilot not in ("stub", "px4"):
             raise ValueError(f"SessionBackend runs 'stub' or 'px4', got {autopilot!r}")
@@ -58,7 +62,6 @@ class SessionBackend:
         self._options = dict(autopilot=autopilot, speed_factor=speed_factor,
                              instance_base=instance_base, px4_bin=px4_bin, gui=gui,
                              run_dir=self._run_dir.name if self._run_dir is not None else None)
-        self._seed = seed
         self.session: SimSession | None = None
         self.fleet: Fleet | None = None
         self.lidar: Lidar | None = None
@@ -74,9 +77,13 @@ class SessionBackend:
             self._stop()  # PX4: restart rather than teleport its estimator
         if self.session is None:
             self._start(seed)
-        # Also right after a start: connecting let time run, and every episode must begin
-        # from the same state as `direct`'s (fresh autopilot, freshly seeded sensors).
-        self._reset_in_place(seed)
+        if self.name == "stub":
+            # Also right after a start: connecting let time run, and every episode must begin
+            # from the same state as `direct`'s (fresh autopilot, freshly seeded sensors).
+            self._reset_in_place(seed)
+        else:
+            # A PX4 just started on the episode's layout (drawn from `seed` by SimSession).
+            self._episode_start_us = self._session().time_us
         self._hover_start()
         self._collided = [False] * self.num_drones
         self._since_us = self._session().time_us
@@ -85,9 +92,15 @@ class SessionBackend:
     def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
         fleet = self._fleet()
         session = self._session()
+        if len(velocities_ned_m_s) != self.num_drones:
+            raise ValueError(f"expected {self.num_drones} velocities, got {len(velocities_ned_m_s)}")
         self._collided = [False] * self.num_drones
         self._since_us = session.time_us
-        fleet.fly([np.asarray(v, dtype=float) for v in velocities_ned_m_s], duration_s)
+        velocities = [np.asarray(v, dtype=float) for v in velocities_ned_m_s]
+        for client, velocity in zip(fleet.clients, velocities, strict=True):
+            client.set_velocity_ned(velocity)
+        self._await_setpoints(velocities)
+        session.run_for(duration_s)
         self._record_collisions()  # the last step's, which no pump has seen yet
         return self._snapshot()
 
@@ -110,7 +123,7 @@ class SessionBackend:
         return self.fleet
 
     def _start(self, seed: int) -> None:
-        session = SimSession(self.world, seed=seed, **self._options)
+        session = SimSession(self.world, seed=seed, **self._options)  # type: ignore[arg-type]
         try:
             session.start()
             self.session = session
@@ -170,6 +183,28 @@ class SessionBackend:
                       tolerance_m=TAKEOFF_TOLERANCE_M)
         fleet.start_offboard()
         session.run_for(SETTLE_S)
+
+    def _await_setpoints(self, velocities: list[np.ndarray]) -> None:
+        """Hold time until every in-process stub has received its new setpoint.
+
+        MAVSDK sends from its own threads in wall time: on a busy machine a datagram can reach
+        the stub several simulated steps after the clock resumed, so the same actions would fly
+        differently from run to run (and from `direct`). The held simulation waits for the
+        delivery instead, pumping the stubs' sockets itself. A real PX4 has no in-process view;
+        it reads its socket in lockstep as PX4 does.
+        """
+        session = self._session()
+        stubs = session.stubs
+        if not stubs or session.runner is None:
+            return
+        deadline = time.monotonic() + SETPOINT_DELIVERY_TIMEOUT_S
+        while not all(np.allclose(stub.commander.offboard.velocity_ned_m_s, v, atol=1e-4)
+                      for stub, v in zip(stubs, velocities, strict=True)):
+            if time.monotonic() > deadline:
+                raise BackendError(f"{self.name}: velocity setpoints not delivered within "
+                                   f"{SETPOINT_DELIVERY_TIMEOUT_S:g} s (wall)")
+            with session.runner.exclusive() as lockstep:
+                lockstep.idle()
 
     # -- observation ----------------------------------------------------------------------------
     def _record_collisions(self) -> None:
