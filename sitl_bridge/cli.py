@@ -40,8 +40,26 @@ def build_parser() -> argparse.ArgumentParser:
         module_name = f"sitl_bridge.commands.{name}"
         if importlib.util.find_spec(module_name) is None:
             continue
-        importlib.import_module(module_name).register(subparsers)
+        try:
+            module = importlib.import_module(module_name)
+        except Exception as exc:  # one broken command must not take the others down
+            _register_broken(subparsers, name, exc)
+            continue
+        module.register(subparsers)
     return parser
+
+
+def _register_broken(subparsers: argparse._SubParsersAction, name: str, exc: Exception) -> None:
+    """A placeholder subcommand that reports why the real one could not be loaded."""
+    command = name.replace("_", "-")
+    parser = subparsers.add_parser(command, help=f"(unavailable: {exc})", add_help=False)
+    parser.add_argument("rest", nargs=argparse.REMAINDER)
+
+    def fail(_args: argparse.Namespace) -> int:
+        print(f"sitl-bridge {command}: cannot load this command: {exc!r}", file=sys.stderr)
+        return 1
+
+    parser.set_defaults(func=fail)
 
 
 def main(argv: list[str] | None = None) -> int:
