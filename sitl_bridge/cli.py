@@ -13,6 +13,8 @@ import importlib.util
 import logging
 import sys
 
+from sitl_bridge.errors import ConfigError
+
 # Order here is the order in `--help`.
 COMMAND_MODULES = (
     "run",
@@ -73,6 +75,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
+    except ConfigError as exc:  # a bad file is the user's to fix: one line, no traceback
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
 
