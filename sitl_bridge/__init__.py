@@ -6,3 +6,14 @@ MAVSDK client -> env -> agent/trainer -> logs -> plots/rules.
 """
 
 __version__ = "0.1.0"
+
+__all__ = ["make_env", "make_parallel_env", "__version__"]
+
+
+def __getattr__(name: str):
+    # Lazy, so `import sitl_bridge` stays light (no pybullet/mavsdk) until an env is wanted.
+    if name in ("make_env", "make_parallel_env"):
+        from sitl_bridge import envs
+
+        return getattr(envs, name)
+    raise AttributeError(f"module 'sitl_bridge' has no attribute {name!r}")

@@ -232,6 +232,9 @@ class SimSession:
 
     def _start(self) -> None:
         world = self.world
+        if self.gui and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+            # pybullet would exit(1) from C without a word of ours
+            raise SessionError("--gui needs a display, and DISPLAY is not set")
         self.sim = Simulation(world, seed=self.seed, step_us=None, gui=self.gui)
         self._closers.append(self.sim.close)
         step_us = self.sim.step_us
