@@ -22,6 +22,9 @@ GCS_BIND_BASE_PORT = 18570
 
 def _port_free(port: int, kind: int) -> bool:
     with socket.socket(socket.AF_INET, kind) as sock:
+        # A TCP port left in TIME_WAIT by an earlier test is reusable, as our servers set
+        # SO_REUSEADDR too; without it such a port would look busy.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind(("127.0.0.1", port))
         except OSError:
@@ -39,11 +42,15 @@ def instance_ports_free(instance: int) -> bool:
     )
 
 
+# The MAVLink system id is 1 + instance and must fit in one byte.
+MAX_INSTANCE = 253
+
+
 def pick_free_instances(count: int) -> int:
-    """First instance of `count` consecutive free instances, chosen at random in 20..2000."""
+    """First instance of `count` consecutive free instances, chosen at random in 20..253."""
     rng = random.Random(os.getpid() ^ random.getrandbits(32))
     for _ in range(200):
-        first = rng.randrange(20, 2000)
+        first = rng.randrange(20, MAX_INSTANCE - count + 2)
         if all(instance_ports_free(first + k) for k in range(count)):
             return first
     raise RuntimeError("no free block of vehicle instances on 127.0.0.1")

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_rl_helpers import CorridorEnv, corridor_factory, tiny_config, train_corridor
 
 from sitl_bridge.rl.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
 from sitl_bridge.rl.run_dir import RunSpec
 from sitl_bridge.rl.trainer import ShapeMismatch, Trainer, read_run_records
-from tests.test_rl_helpers import CorridorEnv, corridor_factory, tiny_config, train_corridor
 
 HELPER = Path(__file__).with_name("test_rl_helpers.py")
 EPISODES = 8
