@@ -99,27 +99,25 @@ class FrameEncoder:
         self.system_id = system_id
         self.component_id = component_id
         self.sequence = 0
-        self._header = struct.Struct("<BBBBBBB")
-        self._msgid_bytes: dict[int, bytes] = {}
 
     def pack(self, message_class: type[MAVLinkMessage], *wire_values: float | int) -> bytes:
         """One complete MAVLink 2 frame carrying `wire_values`."""
-        payload = message_class.unpacker.pack(*wire_values)
-        return self.frame(message_class.id, message_class.crc_extra, payload)
+        return self.frame(message_class.id, message_class.crc_extra, message_class.unpacker.pack(*wire_values))
 
     def frame(self, msgid: int, crc_extra: int, payload: bytes) -> bytes:
         """Frame an already packed payload (trailing zero bytes are truncated, as MAVLink 2
         senders do; receivers zero-extend)."""
         payload = payload.rstrip(b"\0") or b"\0"
-        ids = self._msgid_bytes.get(msgid)
-        if ids is None:
-            ids = self._msgid_bytes[msgid] = msgid.to_bytes(3, "little")
-        header = self._header.pack(
-            MAVLINK2_MAGIC, len(payload), 0, 0, self.sequence, self.system_id, self.component_id
-        ) + ids
-        self.sequence = (self.sequence + 1) & 0xFF
-        crc = crc_mcrf4xx(header[1:] + payload + _CRC_EXTRA_BYTES[crc_extra])
-        return header + payload + crc.to_bytes(2, "little")
+        sequence = self.sequence
+        self.sequence = (sequence + 1) & 0xFF
+        header = _HEADER2.pack(MAVLINK2_MAGIC, len(payload), 0, 0, sequence, self.system_id,
+                               self.component_id, msgid & 0xFFFF, msgid >> 16)
+        # the checksum covers everything after the magic byte, then CRC_EXTRA
+        crc = crc_mcrf4xx(_CRC_EXTRA_BYTES[crc_extra], crc_mcrf4xx(header[1:] + payload))
+        return header + payload + _CRC_BYTES(crc)
+
+
+_CRC_BYTES = struct.Struct("<H").pack
 
 
 # -- decoding ---------------------------------------------------------------------------------

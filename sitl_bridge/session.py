@@ -16,6 +16,13 @@ Time: the session is the clock of the MAVSDK client (`run_for(seconds)` advances
 much simulated time, then holds). While held, in-process stubs keep answering MAVLink; a real
 PX4 is frozen in lockstep. After `start()` the simulation is held.
 
+Episodes: `reset(seed)` starts over in place (simulated time back to 0, vehicles re-spawned,
+sensor noise re-seeded, autopilots rebooted; see its docstring for what each autopilot kind
+does), keeping the ports, so MAVSDK clients stay connected. The autopilots' clock (the
+`time_usec` on the HIL link) keeps counting up across it. `take_collisions()` returns what
+the physics reported since the last call, `deliver_pending_commands()` waits (held) until
+MAVLink commands already sent have reached the in-process stubs.
+
 Failsafe timeouts vs. speed factor: MAVSDK streams offboard setpoints and heartbeats in wall
 time (20 Hz, 1 Hz) while autopilots measure their loss timeouts in simulated time, so at F x
 real time the gap between two setpoints is F times longer in simulated time. Like PX4's rcS
@@ -40,14 +47,15 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.hil import HilLink, Lockstep, SimRunner
-from sitl_bridge.physics.simulation import Simulation, VehicleState
+from sitl_bridge.hil import HilError, HilLink, Lockstep, SimRunner
+from sitl_bridge.physics.simulation import Collision, Simulation, VehicleState
 from sitl_bridge.sensors.suite import SensorSuite
 from sitl_bridge.world.loader import load_world
 from sitl_bridge.world.schema import Spawn, World
@@ -62,10 +70,19 @@ PX4_LAST_OWN_API_PORT_INSTANCE = 9
 DEFAULT_WORLD = "empty"
 EXTRA_VEHICLE_SPACING_M = 3.0
 """`num_vehicles` beyond the world's: copies of its last vehicle, this far apart (east)."""
+COLLISION_LOG_LENGTH = 4096
+"""`take_collisions()` keeps at most this many (the oldest are dropped when nobody takes them)."""
+DELIVERY_TIMEOUT_S = 2.0
+"""Wall seconds `deliver_pending_commands` waits by default."""
 
 
 class SessionError(RuntimeError):
     """The session could not start, or one of its parts died while running."""
+
+
+def sensor_seed(seed: int, vehicle: int) -> int:
+    """Seed of vehicle `vehicle`'s sensor noise in a session (or episode) seeded `seed`."""
+    return int(seed) * 1000 + vehicle
 
 
 # -- world files -----------------------------------------------------------------------------
@@ -205,11 +222,13 @@ class SimSession:
         self.sensors: list[SensorSuite] = []
         self.links: list[HilLink] = []
         self.stubs: list[Any] = []         # in-process StubAutopilot per vehicle (stub only)
+        self.vehicles: list[Any] = []      # their StubVehicle (autopilot + HIL client + API)
         self.lockstep: Lockstep | None = None
         self.runner: SimRunner | None = None
         self.px4: Any = None               # Px4Fleet (px4 only)
         self._processes: list[subprocess.Popen[bytes]] = []
         self._closers: list[Callable[[], None]] = []
+        self._collision_log: deque[Collision] = deque(maxlen=COLLISION_LOG_LENGTH)
         self._started = False
         self._closed = False
 
@@ -238,7 +257,7 @@ class SimSession:
         self.sim = Simulation(world, seed=self.seed, step_us=None, gui=self.gui)
         self._closers.append(self.sim.close)
         step_us = self.sim.step_us
-        self.sensors = [SensorSuite(world.home, seed=self.seed * 1000 + k, step_us=step_us)
+        self.sensors = [SensorSuite(world.home, seed=sensor_seed(self.seed, k), step_us=step_us)
                         for k in range(self.num_vehicles)]
         for instance in self.instances:
             link = HilLink(instance, self.host, HIL_BASE_PORT, step_us=step_us)
@@ -248,11 +267,13 @@ class SimSession:
         if self.autopilot == "stub" and not self.stub_process:
             pumps = self._start_stubs_in_process()
         elif self.autopilot == "stub":
+            self._closers.append(self._stop_processes)
             self._start_stub_processes()
         elif self.autopilot == "px4":
             self._start_px4()
         self.lockstep = Lockstep(self.sim, self.sensors, self.links, speed_factor=self.speed_factor,
                                  pumps=pumps, actuator_timeout_s=self.actuator_timeout_s)
+        self.lockstep.after_step.append(self._log_collisions)
         self._accept_all()
         if self.px4 is not None:
             self.px4.wait_ready(self.lockstep)
@@ -272,6 +293,7 @@ class SimSession:
             self._closers.append(vehicle.close)
             if not vehicle.connect(self.connect_timeout_s or 10.0):
                 raise SessionError(f"vehicle {instance}: stub could not connect to the HIL link")
+            self.vehicles.append(vehicle)
             self.stubs.append(vehicle.autopilot)
             pumps.append(vehicle.pump)
         return pumps
@@ -288,7 +310,6 @@ class SimSession:
             # Own session: a terminal's Ctrl-C reaches us only; we stop the stubs in order.
             process = subprocess.Popen(command, stdin=subprocess.DEVNULL, start_new_session=True)
             self._processes.append(process)
-        self._closers.append(self._stop_processes)
 
     def _start_px4(self) -> None:
         from sitl_bridge.autopilot.px4 import Px4Config, Px4Fleet
@@ -427,6 +448,100 @@ class SimSession:
         with self._require_runner().exclusive():
             yield
 
+    # -- episodes -------------------------------------------------------------------------------
+    def reset(self, seed: int | None = None) -> None:
+        """Start over in place, for the next episode: returns held at simulated time 0.
+
+        Physics and sensors: `lockstep.reset_simulation` (vehicles re-spawned, the layout drawn
+        from `seed` like a new session's; sensor suite k re-seeded `sensor_seed(seed, k)`;
+        seed None keeps the generators going). The HIL links keep every autopilot's clock
+        (`time_usec`) strictly increasing across the jump. The collision log is cleared.
+        Autopilots, per kind:
+
+        * `stub` in-process: each `StubVehicle.reset()` in place, a reboot of a running
+          vehicle (disarmed, fresh commander/controllers/estimator, parameters kept; the
+          estimator's alignment is the short warm one, see `SensorEstimator.reset`). The HIL
+          connection and API sockets stay up: MAVSDK clients stay connected. Cheap (ms).
+        * `px4`: `Px4Fleet.restart` (PX4's estimator cannot follow a teleport reliably): the
+          processes are stopped, the simulation reset, PX4 started again on the same
+          instances, reconnected and run until ready (cold boot; seconds). MAVSDK clients see
+          the same system come back; reconnect them to drop what they cached.
+        * `stub` subprocesses (`stub_process=True`): restarted the same way (cold boot).
+        * `external`: SessionError; the session does not own those autopilots (restart them
+          and the session).
+
+        Runs under `exclusive()`: the runner thread is off the lockstep meanwhile.
+        """
+        runner = self._require_runner()
+        if self.autopilot == "external":
+            raise SessionError("reset: the autopilots are external (not started by this session), so "
+                               "they cannot be rebooted with the simulation; restart them and the session")
+        if seed is not None:
+            self.seed = int(seed)
+        lockstep = self.lockstep
+        assert lockstep is not None
+        sensor_seeds = None if seed is None else [sensor_seed(seed, k) for k in range(self.num_vehicles)]
+
+        def reset_simulation() -> None:
+            lockstep.reset_simulation(seed, sensor_seeds)
+            self._collision_log.clear()
+
+        with runner.exclusive():
+            if self.vehicles:
+                reset_simulation()
+                for vehicle in self.vehicles:
+                    vehicle.reset()
+            elif self.px4 is not None:
+                try:
+                    self.px4.restart(lockstep, reset_simulation, connect_timeout_s=self.connect_timeout_s or 30.0)
+                except HilError as exc:
+                    raise self.px4.explain(exc) from exc
+            else:  # stub subprocesses
+                self._stop_processes()
+                for link in self.links:
+                    link.disconnect()
+                reset_simulation()
+                self._start_stub_processes()
+                self._accept_all()
+
+    def take_collisions(self) -> list[Collision]:
+        """Every collision the physics reported since the last call (or since `start()` /
+        `reset()`), oldest first, each step's exactly once (at most COLLISION_LOG_LENGTH).
+        Call it while held, e.g. before and after a `run_for`."""
+        log_ = self._collision_log
+        taken = list(log_)
+        log_.clear()
+        return taken
+
+    def _log_collisions(self) -> None:
+        # Lockstep.after_step observer, in the stepping thread
+        found = self.sim.collisions() if self.sim is not None else ()
+        if found:
+            self._collision_log.extend(found)
+
+    def deliver_pending_commands(self, until: Callable[[], bool],
+                                 timeout_s: float = DELIVERY_TIMEOUT_S) -> None:
+        """Held, without advancing simulated time: serve the in-process stubs' MAVLink APIs
+        (read and handle every datagram waiting on their sockets) until `until()` holds,
+        e.g. until the offboard setpoints just sent through MAVSDK have arrived
+        (`StubAutopilot.offboard_setpoint`). SessionError after `timeout_s` of wall time.
+
+        Why: MAVSDK sends from its own threads in wall time; on a busy machine a datagram can
+        reach a stub several simulated steps after the clock resumed, so the same commands
+        would take effect at different steps from run to run. Waiting here makes them take
+        effect at the first step of the next `run_for`. Returns at once without in-process
+        stubs (a real PX4 reads its socket in lockstep, as PX4 does).
+        """
+        runner = self._require_runner()
+        if not self.vehicles:
+            return
+        deadline = time.monotonic() + timeout_s
+        while not until():
+            if time.monotonic() > deadline:
+                raise SessionError(f"MAVLink commands not delivered to the stubs within {timeout_s:g} s (wall)")
+            with runner.exclusive() as lockstep:
+                lockstep.idle(0.001)
+
     @property
     def real_time_factor(self) -> float:
         """Achieved simulated/wall time of the current running segment (or the last one)."""
@@ -496,10 +611,12 @@ def _apply_params(table: Any, values: Mapping[str, float]) -> None:
 
 __all__: Sequence[str] = (
     "AUTOPILOTS",
+    "COLLISION_LOG_LENGTH",
     "SessionError",
     "SimSession",
     "default_world_path",
     "px4_mode_name",
     "resolve_world",
+    "sensor_seed",
     "with_vehicle_count",
 )

@@ -60,6 +60,7 @@ _UINT16 = 65535
 _DISARMED = MotorCommand.disarmed()
 
 _SENSOR_CLASS = mavlink.dialect.MAVLink_hil_sensor_message
+_SENSOR_STRUCT, _SENSOR_ID, _SENSOR_CRC_EXTRA = _SENSOR_CLASS.unpacker, _SENSOR_CLASS.id, _SENSOR_CLASS.crc_extra
 _GPS_CLASS = mavlink.dialect.MAVLink_hil_gps_message
 _STATE_CLASS = mavlink.dialect.MAVLink_hil_state_quaternion_message
 _ACTUATOR_STRUCT = struct.Struct("<QQ16fB")  # time_usec, flags, controls[16], mode
@@ -293,6 +294,11 @@ class HilLink:
         ax, ay, az = frame.accel_frd_m_s2.tolist()
         gx, gy, gz = frame.gyro_frd_rad_s.tolist()
         a, g = ACCEL_LIMIT_M_S2, GYRO_LIMIT_RAD_S
+        if not (-a <= ax <= a and -a <= ay <= a and -a <= az <= a
+                and -g <= gx <= g and -g <= gy <= g and -g <= gz <= g):
+            # rare (a crash, NaN): clamp each value; in range (every normal step) skip the calls
+            ax, ay, az = _clamp(ax, -a, a), _clamp(ay, -a, a), _clamp(az, -a, a)
+            gx, gy, gz = _clamp(gx, -g, g), _clamp(gy, -g, g), _clamp(gz, -g, g)
         fields = FIELDS_IMU
         mx = my = mz = 0.0
         pressure_hpa = pressure_alt_m = temperature_c = 0.0
@@ -307,16 +313,12 @@ class HilLink:
             temperature_c = _clamp(float(baro.temperature_c), *TEMPERATURE_RANGE_C)
             pressure_alt_m = _clamp(float(baro.pressure_alt_m), -1000.0, 50000.0)
             fields |= FIELDS_BARO
-        return self._encoder.pack(
-            _SENSOR_CLASS,
-            wire_us,
-            _clamp(ax, -a, a), _clamp(ay, -a, a), _clamp(az, -a, a),
-            _clamp(gx, -g, g), _clamp(gy, -g, g), _clamp(gz, -g, g),
-            mx, my, mz,
+        return self._encoder.frame(_SENSOR_ID, _SENSOR_CRC_EXTRA, _SENSOR_STRUCT.pack(
+            wire_us, ax, ay, az, gx, gy, gz, mx, my, mz,
             pressure_hpa, 0.0, pressure_alt_m, temperature_c,
             fields,
             0,  # id 0: the primary sensor, which drives PX4's clock
-        )
+        ))
 
     def _encode_gps(self, gps: Any, wire_us: int) -> bytes:
         return self._encoder.pack(
@@ -447,13 +449,11 @@ class HilLink:
                 return  # older than what we already applied: out of order, drop
         self._last_reply_wire_us = max(self._last_reply_wire_us, time_usec)
         if mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
-            self.command = MotorCommand(
-                controls=(
-                    _motor_value(values[2]), _motor_value(values[3]),
-                    _motor_value(values[4]), _motor_value(values[5]),
-                ),
-                armed=True,
-            )
+            u1, u2, u3, u4 = values[2:6]
+            if not (0.0 <= u1 <= 1.0 and 0.0 <= u2 <= 1.0 and 0.0 <= u3 <= 1.0 and 0.0 <= u4 <= 1.0):
+                # out of range or NaN (rare): limit each
+                u1, u2, u3, u4 = _motor_value(u1), _motor_value(u2), _motor_value(u3), _motor_value(u4)
+            self.command = MotorCommand((u1, u2, u3, u4), True)
         else:
             self.command = _DISARMED
 

@@ -9,7 +9,8 @@ Each step at simulated time t:
      step waits for the answer to t from every such vehicle (select on the link sockets,
      pumps run again between short waits); an answer that does not come within
      `actuator_timeout_s` (wall) is a `LockstepTimeout`, raised or counted and logged;
-  4. physics advances one step with the latest motor commands.
+  4. physics advances one step with the latest motor commands, then the `after_step`
+     observers run (e.g. a collision log).
 
 Before a vehicle's autopilot answers (PX4 booting), steps do not wait for it: PX4 blocks its
 boot until the first HIL_SENSOR and only answers once its control chain runs.
@@ -105,6 +106,9 @@ class Lockstep:
         self.sensors = list(sensors)
         self.links = list(links)
         self.pumps: list[Pump] = list(pumps)
+        # run after every physics step, in the stepping thread: e.g. to collect the step's
+        # `sim.collisions()` (SimSession's collision log); not while held
+        self.after_step: list[Callable[[], Any]] = []
         self.actuator_timeout_s = actuator_timeout_s
         self.on_timeout = on_timeout
         self.stats = LockstepStats()
@@ -159,6 +163,8 @@ class Lockstep:
             pump()
         self._collect_answers(time_us)
         sim.step([link.command for link in self.links])
+        for observer in self.after_step:
+            observer()
         self.stats.steps += 1
         self._pace()
 
@@ -224,13 +230,18 @@ class Lockstep:
             self.stats.wall_s += now - self._segment_wall0
             self._last_rtf = self._segment_rtf(now)
 
-    def reset_simulation(self, seed: int | None = None) -> None:
+    def reset_simulation(self, seed: int | None = None,
+                         sensor_seeds: Sequence[int | None] | None = None) -> None:
         """Hold, reset the simulation in place (time 0, vehicles re-spawned) and every sensor
         suite with it (their sample schedules follow simulated time). The links keep the
-        autopilots' clock monotonic across the jump."""
+        autopilots' clock monotonic across the jump. Sensor suite i is re-seeded with
+        `sensor_seeds[i]` when given, else `seed + i` (None: not re-seeded)."""
         self.hold()
         self.sim.reset(seed)
         for index, suite in enumerate(self.sensors):
+            if sensor_seeds is not None:
+                suite.reset(sensor_seeds[index])
+                continue
             suite.reset(None if seed is None else seed + index)
 
     def idle(self, timeout_s: float = 0.0) -> None:

@@ -45,6 +45,7 @@ from sitl_bridge.rl.drones_env import (
 )
 from sitl_bridge.rl.episode_log import EpisodeLog, EpisodeRecord, read_records
 from sitl_bridge.rl.evaluate import EvalResult, evaluate_on
+from sitl_bridge.rl.metrics import TensorBoardLog
 from sitl_bridge.rl.replay import ReplayBuffer
 from sitl_bridge.rl.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
 
@@ -110,11 +111,11 @@ class Trainer:
         self.epsilon_max = config.epsilon_max
         self.recent_success: deque[bool] = deque(maxlen=config.success_window)
         self._kept: list[tuple[Path, int]] = []  # (checkpoint, replay rows it needs)
-        self._writer: Any = None
+        self._writer: TensorBoardLog | None = None
         self.stopped_early = False
+        """True when a greedy evaluation reached `stop_on_success` (the run counts as done)."""
         self.last_eval: EvalResult | None = None
         """The latest greedy evaluation of this session."""
-        """True when a greedy evaluation reached `stop_on_success` (the run counts as done)."""
 
     # -- construction -------------------------------------------------------------------
     @classmethod
@@ -296,9 +297,7 @@ class Trainer:
         atomic_write_json(self.run_dir / rd.EVAL_FILE, record)
         append_durably(self.run_dir / rd.EVALS_FILE, (json.dumps(record) + "\n").encode())
         if self._writer is not None:
-            self._writer.add_scalar("eval/success_rate", result.success_rate, self.episode - 1)
-            self._writer.add_scalar("eval/crash_rate", result.crash_rate, self.episode - 1)
-            self._writer.add_scalar("eval/mean_reward", result.mean_reward, self.episode - 1)
+            self._writer.evaluation(self.episode - 1, result)
         self.last_eval = result
         return result
 
@@ -372,29 +371,12 @@ class Trainer:
         self.episode_log.append(records)
         return records
 
-    # -- TensorBoard ---------------------------------------------------------------------------
     def _log_tensorboard(self, records: list[EpisodeRecord]) -> None:
         if self._writer is None:
-            from torch.utils.tensorboard import SummaryWriter
-
             # purge_step drops events a killed session wrote after its last checkpoint.
-            self._writer = SummaryWriter(str(self.run_dir / rd.TENSORBOARD), purge_step=self.episode - 1)
-        step = self.episode - 1
-        w = self._writer
-        w.add_scalar("episode/reward", float(np.mean([r.reward for r in records])), step)
-        w.add_scalar("episode/success", float(np.mean([r.success for r in records])), step)
-        w.add_scalar("episode/crash", float(np.mean([r.outcome == "crash" for r in records])), step)
-        w.add_scalar("episode/steps", float(np.mean([r.steps for r in records])), step)
-        w.add_scalar("episode/sim_time_s", records[0].sim_time_s, step)
-        w.add_scalar("episode/wall_time_s", records[0].wall_time_s, step)
-        w.add_scalar("train/epsilon", records[0].epsilon, step)
-        w.add_scalar("train/success_rate", self.success_rate(), step)
-        w.add_scalar("train/learning_rate", self.agent.optimizer.param_groups[0]["lr"], step)
-        if records[0].mean_loss is not None:
-            w.add_scalar("train/loss", records[0].mean_loss, step)
-        names = {name for r in records for name in r.reward_terms}
-        for name in sorted(names):
-            w.add_scalar(f"reward/{name}", float(np.mean([r.reward_terms.get(name, 0.0) for r in records])), step)
+            self._writer = TensorBoardLog(self.run_dir / rd.TENSORBOARD, purge_step=self.episode - 1)
+        self._writer.episode(self.episode - 1, records, self.success_rate(),
+                             self.agent.optimizer.param_groups[0]["lr"])
 
     def close(self) -> None:
         """Close the env and the TensorBoard writer."""

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from sitl_bridge.physics.simulation import MotorCommand
 
-from .commander import Commander, Home, Output
+from .commander import Commander, Home, OffboardSetpoint, Output
 from .control import AttitudeControl, PositionControl, RateControl, Setpoint, body_z_to_attitude
 from .estimator import Estimate, GroundTruthEstimator, SensorEstimator
 from .mixer import QuadGeometry, QuadXMixer
@@ -59,6 +59,31 @@ class StubAutopilot:
         self.steps = 0
         self._last_time_us: int | None = None
         self._position_due_us: int | None = None
+
+    def reset(self) -> None:
+        """Reboot in place, as PX4 after `reboot` on a vehicle whose sensors keep running:
+        disarmed in AUTO.LOITER with no home, fresh commander, controllers and estimator (the
+        estimate is re-initialised from the next sensor samples with the short warm alignment,
+        `SensorEstimator.reset`); parameters are kept (PX4 stores them). The clock is kept too
+        (`time_us` until the next update), so the MAVLink API's telemetry never goes back in
+        time; the next `update` may come at any time (an in-place simulation reset).
+
+        The same object stays in place, so the HIL client and MAVLink API that refer to it
+        carry on. A new StubAutopilot is the cold boot (ALIGN_S).
+        """
+        time_us = self.commander.time_us
+        self.estimator.reset()
+        self.commander = Commander(self.params)
+        self.commander.time_us = time_us
+        self.mixer.saturated = False
+        self.position_control = PositionControl(self.params)
+        self.attitude_control = AttitudeControl(self.params)
+        self.rate_control = RateControl(self.params)
+        self.last_command = _OFF
+        self.thrust_collective = 0.0
+        self.attitude_setpoint = (1.0, 0.0, 0.0, 0.0)
+        self._last_time_us = None
+        self._position_due_us = None
 
     # --- lockstep ----------------------------------------------------------------------------
     def update(self, frame: SensorFrame) -> MotorCommand:
@@ -180,3 +205,9 @@ class StubAutopilot:
     @property
     def home(self) -> Home | None:
         return self.commander.home
+
+    @property
+    def offboard_setpoint(self) -> OffboardSetpoint:
+        """The last offboard setpoint received (NaN = not controlled; `time_us` = when, -1 =
+        none yet). Read it, do not modify it."""
+        return self.commander.offboard

@@ -17,7 +17,7 @@ from .vec import (
     Quat,
     Vec3,
     clamp,
-    quat_conjugate,
+    quat_conjugate_multiply,
     quat_from_two_vectors,
     quat_multiply,
     quat_normalize,
@@ -184,12 +184,23 @@ class AttitudeControl:
 
     def __init__(self, params: ParamTable) -> None:
         self.params = params
+        self._gains_version = -1
+        self._gains: tuple[float, ...] = ()
 
-    def update(self, q: Quat, q_sp: Quat, yaw_rate_ff_rad_s: float = 0.0) -> Vec3:
-        """Body-rate setpoint (FRD, rad/s) from attitude q towards q_sp."""
+    def _load_gains(self) -> None:
+        # derived gains and limits, re-read only when a parameter changed
         p = self.params.values
         yaw_w = clamp(p["MC_YAW_WEIGHT"], 0.0, 1.0)
         gain_yaw = p["MC_YAW_P"] / yaw_w if yaw_w > 1e-4 else p["MC_YAW_P"]
+        self._gains = (yaw_w, p["MC_ROLL_P"], p["MC_PITCH_P"], gain_yaw, p["MC_ROLLRATE_MAX"] * _DEG,
+                       p["MC_PITCHRATE_MAX"] * _DEG, p["MC_YAWRATE_MAX"] * _DEG)
+        self._gains_version = self.params.version
+
+    def update(self, q: Quat, q_sp: Quat, yaw_rate_ff_rad_s: float = 0.0) -> Vec3:
+        """Body-rate setpoint (FRD, rad/s) from attitude q towards q_sp."""
+        if self._gains_version != self.params.version:
+            self._load_gains()
+        yaw_w, roll_p, pitch_p, gain_yaw, lr, lp, ly = self._gains
         e_z = _body_z_in_world(q)
         e_z_d = _body_z_in_world(q_sp)
         qd_red = quat_from_two_vectors(e_z, e_z_d)
@@ -198,22 +209,21 @@ class AttitudeControl:
         else:
             qd_red = quat_multiply(qd_red, q)
         # the yaw left to do after the tilt, scaled down by the yaw weight
-        q_mix = quat_normalize(quat_multiply(quat_conjugate(qd_red), q_sp))
-        w = clamp(q_mix[0], -1.0, 1.0)
-        z = clamp(q_mix[3], -1.0, 1.0)
+        q_mix = quat_normalize(quat_conjugate_multiply(qd_red, q_sp))
+        w, z = q_mix[0], q_mix[3]
+        w = -1.0 if w < -1.0 else 1.0 if w > 1.0 else w
+        z = -1.0 if z < -1.0 else 1.0 if z > 1.0 else z
         qd = quat_multiply(qd_red, (math.cos(yaw_w * math.acos(w)), 0.0, 0.0, math.sin(yaw_w * math.asin(z))))
-        qe = quat_multiply(quat_conjugate(q), qd)
+        qe = quat_conjugate_multiply(q, qd)
         s = 2.0 if qe[0] >= 0.0 else -2.0   # canonical (shorter) error rotation
-        rx, ry, rz = s * qe[1] * p["MC_ROLL_P"], s * qe[2] * p["MC_PITCH_P"], s * qe[3] * gain_yaw
+        rx, ry, rz = s * qe[1] * roll_p, s * qe[2] * pitch_p, s * qe[3] * gain_yaw
         if yaw_rate_ff_rad_s:
             zb = quat_rotate_inverse(q, (0.0, 0.0, 1.0))
             rx += zb[0] * yaw_rate_ff_rad_s
             ry += zb[1] * yaw_rate_ff_rad_s
             rz += zb[2] * yaw_rate_ff_rad_s
-        lr = p["MC_ROLLRATE_MAX"] * _DEG
-        lp = p["MC_PITCHRATE_MAX"] * _DEG
-        ly = p["MC_YAWRATE_MAX"] * _DEG
-        return (clamp(rx, -lr, lr), clamp(ry, -lp, lp), clamp(rz, -ly, ly))
+        return (-lr if rx < -lr else lr if rx > lr else rx, -lp if ry < -lp else lp if ry > lp else ry,
+                -ly if rz < -ly else ly if rz > ly else rz)
 
 
 _DEG = math.pi / 180.0
@@ -229,42 +239,61 @@ class RateControl:
     """PX4 RateControl: body-rate PID with derivative on measurement -> normalised torque."""
 
     _INTEGRATOR_LIMIT = (0.3, 0.3, 0.3)  # MC_RR_INT_LIM, MC_PR_INT_LIM, MC_YR_INT_LIM
+    _RATE_DOT_TAU_S = 1.0 / (2.0 * math.pi * 30.0)  # PX4 low-passes the angular acceleration at ~30 Hz
 
     def __init__(self, params: ParamTable) -> None:
         self.params = params
-        self.integral = [0.0, 0.0, 0.0]
-        self._last_rate: Vec3 | None = None
-        self._rate_dot = [0.0, 0.0, 0.0]
+        self._gains_version = -1
+        self._gains: tuple[float, ...] = ()
+        self.reset()
 
     def reset(self) -> None:
         """Clear integrators and the derivative history."""
         self.integral = [0.0, 0.0, 0.0]
-        self._last_rate = None
+        self._last_rate: Vec3 | None = None
         self._rate_dot = [0.0, 0.0, 0.0]
+
+    def _load_gains(self) -> None:
+        # re-read only when a parameter changed: nine dict look-ups per step add up
+        p = self.params.values
+        self._gains = (p["MC_ROLLRATE_P"], p["MC_PITCHRATE_P"], p["MC_YAWRATE_P"],
+                       p["MC_ROLLRATE_I"], p["MC_PITCHRATE_I"], p["MC_YAWRATE_I"],
+                       p["MC_ROLLRATE_D"], p["MC_PITCHRATE_D"], p["MC_YAWRATE_D"])
+        self._gains_version = self.params.version
 
     def update(self, dt_s: float, rate_frd_rad_s: Vec3, rate_sp_frd_rad_s: Vec3, saturated: bool,
                landed: bool) -> Vec3:
         """Normalised torque (roll, pitch, yaw) in about [-1, 1]."""
-        p = self.params.values
-        kp = (p["MC_ROLLRATE_P"], p["MC_PITCHRATE_P"], p["MC_YAWRATE_P"])
-        ki = (p["MC_ROLLRATE_I"], p["MC_PITCHRATE_I"], p["MC_YAWRATE_I"])
-        kd = (p["MC_ROLLRATE_D"], p["MC_PITCHRATE_D"], p["MC_YAWRATE_D"])
+        if self._gains_version != self.params.version:
+            self._load_gains()
+        kp_x, kp_y, kp_z, ki_x, ki_y, ki_z, kd_x, kd_y, kd_z = self._gains
+        wx, wy, wz = rate_frd_rad_s
         last = self._last_rate
         rd = self._rate_dot
         if last is not None and dt_s > 0.0:
-            # angular acceleration, low-passed (PX4 filters it at ~30 Hz)
-            alpha = dt_s / (dt_s + 1.0 / (2.0 * math.pi * 30.0))
-            for k in range(3):
-                rd[k] += alpha * ((rate_frd_rad_s[k] - last[k]) / dt_s - rd[k])
+            # angular acceleration, low-passed
+            alpha = dt_s / (dt_s + self._RATE_DOT_TAU_S)
+            rd[0] += alpha * ((wx - last[0]) / dt_s - rd[0])
+            rd[1] += alpha * ((wy - last[1]) / dt_s - rd[1])
+            rd[2] += alpha * ((wz - last[2]) / dt_s - rd[2])
         self._last_rate = rate_frd_rad_s
-        out = [0.0, 0.0, 0.0]
+        ex, ey, ez = rate_sp_frd_rad_s[0] - wx, rate_sp_frd_rad_s[1] - wy, rate_sp_frd_rad_s[2] - wz
         integ = self.integral
-        for k in range(3):
-            e = rate_sp_frd_rad_s[k] - rate_frd_rad_s[k]
-            out[k] = kp[k] * e + integ[k] - kd[k] * rd[k]
-            if not landed and not saturated:
-                # PX4 shrinks the integration for large errors (i_factor)
-                i_factor = max(0.0, 1.0 - (e / math.radians(400.0)) ** 2)
-                lim = self._INTEGRATOR_LIMIT[k]
-                integ[k] = clamp(integ[k] + i_factor * ki[k] * e * dt_s, -lim, lim)
-        return (out[0], out[1], out[2])
+        out = (kp_x * ex + integ[0] - kd_x * rd[0], kp_y * ey + integ[1] - kd_y * rd[1],
+               kp_z * ez + integ[2] - kd_z * rd[2])
+        if not landed and not saturated:
+            lim_x, lim_y, lim_z = self._INTEGRATOR_LIMIT
+            integ[0] = _integrate(integ[0], ki_x * ex * dt_s, ex, lim_x)
+            integ[1] = _integrate(integ[1], ki_y * ey * dt_s, ey, lim_y)
+            integ[2] = _integrate(integ[2], ki_z * ez * dt_s, ez, lim_z)
+        return out
+
+
+_I_FACTOR_RATE_RAD_S = math.radians(400.0)
+
+
+def _integrate(integral: float, increment: float, error: float, limit: float) -> float:
+    """One integrator step; PX4 shrinks the integration for large errors (i_factor)."""
+    i_factor = 1.0 - (error / _I_FACTOR_RATE_RAD_S) ** 2
+    value = integral + (i_factor if i_factor > 0.0 else 0.0) * increment
+    return -limit if value < -limit else limit if value > limit else value

@@ -8,7 +8,8 @@ Two sources, chosen once at construction:
   barometric height corrections, accelerometer bias states; the baro's zero is tied to GPS
   height). The local NED origin is the first GPS fix, like PX4's EKF origin. Like EKF2, the
   position is reported valid (armable) only after an initial alignment of ALIGN_S (3 s of
-  simulated time) with boosted attitude gains.
+  simulated time) with boosted attitude gains. After a reset of a running vehicle (see
+  `SensorEstimator.reset`) the alignment is the short WARM_ALIGN_S.
 - `ground_truth_estimate=True`: copies SensorFrame.truth (clearly not what PX4 would know;
   faster and noise-free, for RL speed runs).
 """
@@ -81,8 +82,11 @@ NO_TRUTH = GroundTruth(
 )
 
 
-def _floats(v) -> list[float]:
-    """Python floats of a 3-vector (numpy arrays index slowly element by element)."""
+def _floats(v) -> tuple[float, ...] | list[float]:
+    """Python floats of a 3-vector (numpy arrays index slowly element by element). Tuples (the
+    stub's HIL client decodes into them) pass as they are."""
+    if type(v) is tuple:
+        return v
     try:
         return v.tolist()
     except AttributeError:
@@ -95,6 +99,11 @@ class GroundTruthEstimator:
     def __init__(self) -> None:
         self.estimate = Estimate()
         self._origin_ned: Vec3 | None = None
+
+    def reset(self) -> None:
+        """Forget everything: the next frame's truth is the new origin."""
+        self.estimate = Estimate()
+        self._origin_ned = None
 
     def update(self, frame: SensorFrame) -> Estimate:
         """Copy the truth of this frame into the estimate."""
@@ -140,6 +149,7 @@ class SensorEstimator:
     GYRO_BIAS_KI = 0.01
     ALIGN_S = 3.0                  # fast initial alignment: gains x ALIGN_BOOST for this long
     ALIGN_BOOST = 10.0
+    WARM_ALIGN_S = 1.0             # the same after `reset()` (warm sensors; see there)
     # position filter: gains per GPS update for position, velocity, accel bias
     GPS_POS_GAIN = 0.25
     GPS_VEL_GAIN = 0.35
@@ -152,7 +162,8 @@ class SensorEstimator:
     MIN_GPS_FIX = 3
     MIN_GPS_SATELLITES = 6
 
-    def __init__(self) -> None:
+    def __init__(self, align_s: float | None = None) -> None:
+        self.align_s = self.ALIGN_S if align_s is None else float(align_s)
         self.estimate = Estimate()
         self._q: Quat | None = None
         self._gyro_bias = [0.0, 0.0, 0.0]
@@ -172,10 +183,26 @@ class SensorEstimator:
         self._last_gps: tuple[int, Vec3] | None = None
         self._declination_rad = 0.0   # known once the origin is: heading = field heading + this
 
+    def reset(self, align_s: float | None = None) -> None:
+        """Re-initialise from the next sensor samples, as after a reboot of a running vehicle,
+        with an alignment of `align_s` (default WARM_ALIGN_S) instead of the cold ALIGN_S.
+
+        Why shorter: ALIGN_S stands for EKF2's wait after a cold boot. After a reset the IMU,
+        magnetometer, barometer and GPS are already running with a 3D fix (the simulated
+        sensors have no warm-up of their own), the initial attitude is taken from the first
+        accelerometer/magnetometer sample as at boot, and the origin from the first GPS fix
+        (<= 0.2 s at 5 Hz). WARM_ALIGN_S = 1 s still spans three time constants of the boosted
+        heading loop (1 / (MAG_KP * ALIGN_BOOST) = 0.33 s; the tilt loop's is 0.25 s), which
+        removes ~95 % of the single-sample initial error, and five GPS fixes for the position
+        and velocity filter. Learnt states (gyro and accelerometer biases, baro offset) start
+        over: the vehicle may have moved, and a reset re-draws the sensor noise."""
+        self.__init__(self.WARM_ALIGN_S if align_s is None else align_s)  # type: ignore[misc]
+
     def update(self, frame: SensorFrame) -> Estimate:
         """Fold one SensorFrame into the estimate."""
-        dt = 0.0 if self._last_time_us is None else (frame.time_us - self._last_time_us) * 1e-6
-        self._last_time_us = frame.time_us
+        time_us = frame.time_us
+        dt = 0.0 if self._last_time_us is None else (time_us - self._last_time_us) * 1e-6
+        self._last_time_us = time_us
         ax, ay, az = _floats(frame.accel_frd_m_s2)
         acc_b = (ax, ay, az)
         gx, gy, gz = _floats(frame.gyro_frd_rad_s)
@@ -184,26 +211,29 @@ class SensorEstimator:
         if self._q is None:
             self._q = self._initial_attitude(acc_b, frame.mag_frd_gauss)
         if dt > 0.0:
-            self._attitude_step(dt, acc_b, w, frame.mag_frd_gauss, frame.time_us)
+            self._attitude_step(dt, acc_b, w, frame.mag_frd_gauss, time_us)
         q = self._q
         e = self.estimate
-        e.time_us = frame.time_us
+        e.time_us = time_us
         e.quaternion_ned_frd = q
         e.angular_velocity_frd_rad_s = w
         e.attitude_valid = True
 
         # kinematic acceleration in NED = R f + g
-        f_ned = quat_rotate(q, acc_b)
+        fn, fe, fd = quat_rotate(q, acc_b)
         ab = self._acc_bias_ned
-        acc_ned = (f_ned[0] - ab[0], f_ned[1] - ab[1], f_ned[2] + GRAVITY_M_S2 - ab[2])
+        an, ae, ad = fn - ab[0], fe - ab[1], fd + GRAVITY_M_S2 - ab[2]
+        pos, vel = self._pos, self._vel
         if e.origin is not None and dt > 0.0:
-            pos, vel = self._pos, self._vel
-            for k in range(3):
-                pos[k] += (vel[k] + 0.5 * acc_ned[k] * dt) * dt
-                vel[k] += acc_ned[k] * dt
+            half_dt = 0.5 * dt
+            pos[0] += (vel[0] + an * half_dt) * dt
+            pos[1] += (vel[1] + ae * half_dt) * dt
+            pos[2] += (vel[2] + ad * half_dt) * dt
+            vel[0] += an * dt
+            vel[1] += ae * dt
+            vel[2] += ad * dt
         lp = self._accel_lp
-        self._accel_lp = (lp[0] + 0.2 * (acc_ned[0] - lp[0]), lp[1] + 0.2 * (acc_ned[1] - lp[1]),
-                          lp[2] + 0.2 * (acc_ned[2] - lp[2]))
+        self._accel_lp = (lp[0] + 0.2 * (an - lp[0]), lp[1] + 0.2 * (ae - lp[1]), lp[2] + 0.2 * (ad - lp[2]))
 
         gps = frame.gps
         if gps is not None:
@@ -211,19 +241,21 @@ class SensorEstimator:
         baro = frame.baro
         if baro is not None and e.origin is not None and dt > 0.0:
             # PX4 ignores HIL_SENSOR.pressure_alt: height comes from the pressure itself
-            self._baro_update(pressure_altitude_m(baro.pressure_hpa * 100.0), frame.time_us)
+            self._baro_update(pressure_altitude_m(baro.pressure_hpa * 100.0), time_us)
 
+        # the GPS update may have replaced the lists
+        pos, vel = self._pos, self._vel
         # like EKF2, report a usable position only once the attitude has aligned
         e.position_valid = e.origin is not None and self._align_until_us is not None \
-            and frame.time_us >= self._align_until_us
-        e.position_ned_m = (self._pos[0], self._pos[1], self._pos[2])
-        e.velocity_ned_m_s = (self._vel[0], self._vel[1], self._vel[2])
+            and time_us >= self._align_until_us
+        e.position_ned_m = (pos[0], pos[1], pos[2])
+        e.velocity_ned_m_s = (vel[0], vel[1], vel[2])
         e.accel_ned_m_s2 = self._accel_lp
         if e.origin is not None:
             lat0, lon0, alt0 = e.origin
-            e.lat_deg = lat0 + math.degrees(self._pos[0] / EARTH_RADIUS_M)
-            e.lon_deg = lon0 + math.degrees(self._pos[1] / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
-            e.alt_amsl_m = alt0 - self._pos[2]
+            e.lat_deg = lat0 + math.degrees(pos[0] / EARTH_RADIUS_M)
+            e.lon_deg = lon0 + math.degrees(pos[1] / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+            e.alt_amsl_m = alt0 - pos[2]
         return e
 
     # --- attitude ----------------------------------------------------------------------
@@ -240,37 +272,39 @@ class SensorEstimator:
 
     def _attitude_step(self, dt: float, acc_b: Vec3, w: Vec3, mag, time_us: int) -> None:
         q = self._q
-        corr = [0.0, 0.0, 0.0]
+        cx = cy = cz = 0.0   # attitude correction (body rates)
         if self._align_until_us is None:
             self._align_until_us = time_us + int(self.ALIGN_S * 1e6)
         boost = self.ALIGN_BOOST if time_us < self._align_until_us else 1.0
-        acc_kp, mag_kp = self.ACC_KP * boost, self.MAG_KP * boost
-        a_norm = math.sqrt(acc_b[0] ** 2 + acc_b[1] ** 2 + acc_b[2] ** 2)
+        ax, ay, az = acc_b
+        a_norm = math.sqrt(ax * ax + ay * ay + az * az)
         # trust the accelerometer's gravity direction only near 1 g
         ga = self._gps_accel_ned
-        ref = (ga[0], ga[1], ga[2] - GRAVITY_M_S2)   # expected specific force, NED
-        ref_norm = math.sqrt(ref[0] ** 2 + ref[1] ** 2 + ref[2] ** 2)
+        rx, ry, rz = ga[0], ga[1], ga[2] - GRAVITY_M_S2   # expected specific force, NED
+        ref_norm = math.sqrt(rx * rx + ry * ry + rz * rz)
         if 0.5 * GRAVITY_M_S2 < a_norm < 1.5 * GRAVITY_M_S2 and ref_norm > 1.0:
-            up_meas = (acc_b[0] / a_norm, acc_b[1] / a_norm, acc_b[2] / a_norm)  # specific force points up
-            up_est = quat_rotate_inverse(q, (ref[0] / ref_norm, ref[1] / ref_norm, ref[2] / ref_norm))
+            mx, my, mz = ax / a_norm, ay / a_norm, az / a_norm  # measured: specific force points up
+            ex, ey, ez = quat_rotate_inverse(q, (rx / ref_norm, ry / ref_norm, rz / ref_norm))
             # error = measured x estimated
-            corr[0] += acc_kp * (up_meas[1] * up_est[2] - up_meas[2] * up_est[1])
-            corr[1] += acc_kp * (up_meas[2] * up_est[0] - up_meas[0] * up_est[2])
-            corr[2] += acc_kp * (up_meas[0] * up_est[1] - up_meas[1] * up_est[0])
+            k = self.ACC_KP * boost
+            cx = k * (my * ez - mz * ey)
+            cy = k * (mz * ex - mx * ez)
+            cz = k * (mx * ey - my * ex)
         if mag is not None:
-            mx, my, mz = _floats(mag)
-            m_ned = quat_rotate(q, (mx, my, mz))
+            m_ned = quat_rotate(q, _floats(mag))
             # heading error about world down, applied in body frame
             heading_err = wrap_pi(self._declination_rad - math.atan2(m_ned[1], m_ned[0]))
-            zb = quat_rotate_inverse(q, (0.0, 0.0, 1.0))
-            k = mag_kp * heading_err
-            corr[0] += zb[0] * k
-            corr[1] += zb[1] * k
-            corr[2] += zb[2] * k
+            zx, zy, zz = quat_rotate_inverse(q, (0.0, 0.0, 1.0))
+            k = self.MAG_KP * boost * heading_err
+            cx += zx * k
+            cy += zy * k
+            cz += zz * k
         gb = self._gyro_bias
-        for i in range(3):
-            gb[i] -= self.GYRO_BIAS_KI * corr[i] * dt
-        wx, wy, wz = w[0] + corr[0], w[1] + corr[1], w[2] + corr[2]
+        ki = self.GYRO_BIAS_KI
+        gb[0] -= ki * cx * dt
+        gb[1] -= ki * cy * dt
+        gb[2] -= ki * cz * dt
+        wx, wy, wz = w[0] + cx, w[1] + cy, w[2] + cz
         qw, qx, qy, qz = q
         h = 0.5 * dt
         self._q = quat_normalize((

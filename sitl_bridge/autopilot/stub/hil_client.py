@@ -54,13 +54,16 @@ _FIELDS_BARO = 0x1A00
 _LOCKSTEP_FLAG = 1
 _MODE_ARMED = d.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | d.MAV_MODE_FLAG_SAFETY_ARMED
 _MODE_DISARMED = d.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-_ZEROS12 = (0.0,) * 12
 _EARTH_RADIUS_M = 6378137.0
 
 _SENSOR = struct.Struct("<QfffffffffffffIB")
 _GPS = struct.Struct("<QiiiHHHhhhHBBBH")
 _STATE = struct.Struct("<Q4ffffiiihhhHHhhh")
 _ACTUATOR_CLASS = d.MAVLink_hil_actuator_controls_message
+# HIL_ACTUATOR_CONTROLS payload with controls 5..16 always 0: the same bytes as the dialect's
+# "<QQ16fB", with four arguments to pack instead of nineteen
+_ACTUATORS = struct.Struct("<QQ4f48xB")
+assert _ACTUATORS.size == _ACTUATOR_CLASS.unpacker.size
 
 
 @dataclass
@@ -260,11 +263,11 @@ class HilClient:
     def _step(self, frame: SensorFrame) -> None:
         command = self.autopilot.update(frame)
         if command.armed:
-            c = command.controls
-            payload = (frame.time_us, _LOCKSTEP_FLAG, c[0], c[1], c[2], c[3], *_ZEROS12, _MODE_ARMED)
+            c0, c1, c2, c3 = command.controls
+            payload = _ACTUATORS.pack(frame.time_us, _LOCKSTEP_FLAG, c0, c1, c2, c3, _MODE_ARMED)
         else:
-            payload = (frame.time_us, _LOCKSTEP_FLAG, 0.0, 0.0, 0.0, 0.0, *_ZEROS12, _MODE_DISARMED)
-        self._send(self._encoder.pack(_ACTUATOR_CLASS, *payload))
+            payload = _ACTUATORS.pack(frame.time_us, _LOCKSTEP_FLAG, 0.0, 0.0, 0.0, 0.0, _MODE_DISARMED)
+        self._send(self._encoder.frame(_ACTUATOR_CLASS.id, _ACTUATOR_CLASS.crc_extra, payload))
         self.stats.actuator_msgs += 1
 
     # --- decoding -------------------------------------------------------------------------------
@@ -275,11 +278,13 @@ class HilClient:
             return None  # only the primary sensor drives the clock (PX4 lockstep)
         self.stats.sensor_msgs += 1
         self.last_time_usec = time_usec
-        mag = np.array((mx, my, mz)) if fields & _FIELDS_MAG == _FIELDS_MAG else None
+        mag = (mx, my, mz) if fields & _FIELDS_MAG == _FIELDS_MAG else None
         baro = BaroSample(abs_pressure_hpa, temperature_c, pressure_alt_m) \
             if fields & _FIELDS_BARO == _FIELDS_BARO else None
         truth = self._truth if self._truth is not None else NO_TRUTH
-        return SensorFrame(time_usec, np.array((ax, ay, az)), np.array((gx, gy, gz)), mag, baro, None, truth)
+        # plain tuples, not numpy arrays: this frame only feeds the stub's estimator, which
+        # reads the values back as floats (an array costs more to build than to use here)
+        return SensorFrame(time_usec, (ax, ay, az), (gx, gy, gz), mag, baro, None, truth)  # type: ignore[arg-type]
 
     def _decode_gps(self, payload: bytes) -> GpsSample | None:
         (_t, lat, lon, alt, eph, epv, vel, vn, ve, vd, cog, fix_type, satellites, gps_id, _yaw) = _GPS.unpack(payload)

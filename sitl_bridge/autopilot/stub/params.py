@@ -164,6 +164,8 @@ class ParamTable:
         self._names: list[str] = []
         #: name -> value, kept in step with the table: the controllers' fast read path
         self.values: dict[str, float] = {}
+        #: bumped on every change, so per-step code can cache derived gains until it moves
+        self.version = 0
         for name, (value, param_type) in (defaults if defaults is not None else PX4_DEFAULTS).items():
             self._add(name, value, param_type)
         if px4_params_dir is not None:
@@ -182,6 +184,7 @@ class ParamTable:
         if param_type == MAV_PARAM_TYPE_INT32:
             value = float(int(value))
         self.values[name] = float(value)
+        self.version += 1
         if name in self._params:
             self._params[name].value = float(value)
             self._params[name].param_type = param_type
@@ -220,6 +223,7 @@ class ParamTable:
             raise ValueError(f"{name}: value must be finite, got {value}")
         param.value = float(int(value)) if param.param_type == MAV_PARAM_TYPE_INT32 else float(value)
         self.values[name] = param.value
+        self.version += 1
         return param
 
     def add(self, name: str, value: float, param_type: int) -> Param:

@@ -40,6 +40,18 @@ def quat_multiply(a: Quat, b: Quat) -> Quat:
     )
 
 
+def quat_conjugate_multiply(a: Quat, b: Quat) -> Quat:
+    """conjugate(a) * b (the rotation from a to b) without building the conjugate."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw + ax * bx + ay * by + az * bz,
+        aw * bx - ax * bw - ay * bz + az * by,
+        aw * by + ax * bz - ay * bw - az * bx,
+        aw * bz - ax * by + ay * bx - az * bw,
+    )
+
+
 def quat_conjugate(q: Quat) -> Quat:
     """Inverse of a unit quaternion."""
     return (q[0], -q[1], -q[2], -q[3])

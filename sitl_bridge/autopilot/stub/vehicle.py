@@ -42,6 +42,13 @@ class StubVehicle:
         """Non-blocking: answer pending HIL_SENSOR messages and serve the API (Lockstep pump)."""
         return self.hil.pump()
 
+    def reset(self) -> None:
+        """Reboot the autopilot in place (`StubAutopilot.reset`: disarmed, fresh estimator and
+        controllers, parameters kept) while the HIL connection and the API sockets stay up, so
+        the simulator and MAVSDK keep talking to the same ports. Call it while the simulator
+        is held (e.g. inside `SimSession.exclusive()`), never between a HIL_SENSOR and its answer."""
+        self.autopilot.reset()
+
     def close(self) -> None:
         """Close the HIL connection and the API sockets."""
         self.hil.close()

@@ -7,6 +7,11 @@ methods the stub's MAVLink API calls (arm, takeoff, mode switch, offboard veloci
 in the same order as the `stub` backend sends them through MAVSDK, so both fly alike. The
 offboard setpoint is refreshed at MAVSDK's 20 Hz (in simulated time) so the offboard-loss
 failsafe never fires. The lidar is cast once per `fly`/`reset` (observations need it only then).
+
+Reset: in place, the same steps as `SimSession.reset` for in-process stubs: the simulation
+re-spawned from the episode's seed (time 0), sensor noise re-seeded (`sensor_seed`), every
+autopilot rebooted with `StubAutopilot.reset` (the short warm alignment; the autopilots are
+built once, with the backend).
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from sitl_bridge.autopilot.stub.autopilot import StubAutopilot
-from sitl_bridge.autopilot.stub.modes import HOLD, CommandResult, LandedState, MainMode
+from sitl_bridge.autopilot.stub.modes import HOLD, CommandResult, LandedState, MainMode, custom_mode
 from sitl_bridge.autopilot.stub.params import ParamTable
 from sitl_bridge.envs.backends.base import (
     ARM_POLL_S,
@@ -29,16 +34,14 @@ from sitl_bridge.envs.backends.base import (
 from sitl_bridge.physics import MotorCommand, Simulation
 from sitl_bridge.sensors import SensorSuite
 from sitl_bridge.sensors.lidar import Lidar
+from sitl_bridge.session import sensor_seed
 from sitl_bridge.world import World
 
 SETPOINT_PERIOD_S = 0.05
 """MAVSDK re-sends offboard setpoints at 20 Hz; the direct backend refreshes them as often."""
 
 
-def sensor_seed(seed: int, vehicle: int) -> int:
-    """Seed of vehicle `vehicle`'s sensor noise in an episode seeded `seed` (shared by backends;
-    `SimSession`'s own convention, so a session's first episode is seeded the same way)."""
-    return int(seed) * 1000 + vehicle
+_HOLD_MODE = custom_mode(*HOLD)
 
 
 class DirectBackend:
@@ -55,7 +58,7 @@ class DirectBackend:
         self.lidar = Lidar(self.sim, [v.lidar for v in world.vehicles])
         self.sensors = [SensorSuite(world.home, seed=sensor_seed(seed, i), step_us=self.sim.step_us)
                         for i in range(self.num_drones)]
-        self.autopilots: list[StubAutopilot] = []
+        self.autopilots = [StubAutopilot(i, self._params()) for i in range(self.num_drones)]
         self._collided = [False] * self.num_drones
         self._velocities: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)] * self.num_drones
         self._refresh_steps = max(1, round(SETPOINT_PERIOD_S * 1e6 / self.sim.step_us))
@@ -69,7 +72,8 @@ class DirectBackend:
         self.lidar.reset()
         for i, suite in enumerate(self.sensors):
             suite.reset(sensor_seed(seed, i))
-        self.autopilots = [StubAutopilot(i, self._params()) for i in range(self.num_drones)]
+        for autopilot in self.autopilots:
+            autopilot.reset()
         self._velocities = [(0.0, 0.0, 0.0)] * self.num_drones
         self._hover_start()
         self._collided = [False] * self.num_drones
@@ -148,7 +152,7 @@ class DirectBackend:
             home = ap.home
             if home is None or ap.landed_state is not LandedState.IN_AIR:
                 return False
-            if (ap.commander.main_mode, ap.commander.sub_mode) != HOLD:
+            if ap.custom_mode != _HOLD_MODE:
                 return False
             altitude = home.position_ned_m[2] - ap.estimate.position_ned_m[2]
             if abs(altitude - self.start_altitude_m) > TAKEOFF_TOLERANCE_M:

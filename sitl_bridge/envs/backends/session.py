@@ -10,19 +10,24 @@ Episode start (see `base`): the same sequence as `direct`, through MAVSDK: arm (
 there in HOLD, offboard with a zero-velocity setpoint, settle.
 
 Reset between episodes:
-* `stub`: in place, on the same processes and ports. The simulation is re-spawned with the
-  episode's seed, the sensor noise re-seeded and the stubs re-initialised (disarmed, fresh
-  estimator), while the clock keeps counting up so that the stubs' stream schedules, the
-  lockstep's answer matching and MAVSDK all see monotonic time.
+* `stub`: in place, on the same ports and MAVSDK connections: `SimSession.reset(seed)`
+  re-spawns the simulation with the episode's seed (simulated time back to 0, as `direct`),
+  re-seeds the sensor noise and reboots every stub (`StubVehicle.reset`: disarmed, fresh
+  estimator with the short warm alignment, as `direct`'s `StubAutopilot.reset`), while the
+  HIL link keeps the stubs' clock counting up (their stream schedules, the lockstep's answer
+  matching and MAVSDK all see monotonic time).
 * `px4`: PX4's estimator cannot be teleported (the thesis's position jump), so the session is
   restarted: PX4 processes, links and MAVSDK clients, on the same instances.
+
+Collisions come from the session's collision log (`SimSession.take_collisions`), each
+physics step's exactly once; a new setpoint reaches in-process stubs before the first step
+of its span (`SimSession.deliver_pending_commands`), as in `direct`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import tempfile
-import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -36,9 +41,8 @@ from sitl_bridge.envs.backends.base import (
     BackendError,
     Snapshot,
 )
-from sitl_bridge.envs.backends.direct import sensor_seed
 from sitl_bridge.sensors.lidar import Lidar
-from sitl_bridge.session import SimSession
+from sitl_bridge.session import SessionError, SimSession
 from sitl_bridge.world import World
 
 SETPOINT_DELIVERY_TIMEOUT_S = 2.0
@@ -66,7 +70,6 @@ class SessionBackend:
         self.fleet: Fleet | None = None
         self.lidar: Lidar | None = None
         self._collided = [False] * self.num_drones
-        self._since_us = 0
         self._episode_start_us = 0
         self._closed = False
 
@@ -77,16 +80,18 @@ class SessionBackend:
             self._stop()  # PX4: restart rather than teleport its estimator
         if self.session is None:
             self._start(seed)
+        session = self._session()
         if self.name == "stub":
             # Also right after a start: connecting let time run, and every episode must begin
-            # from the same state as `direct`'s (fresh autopilot, freshly seeded sensors).
-            self._reset_in_place(seed)
-        else:
-            # A PX4 just started on the episode's layout (drawn from `seed` by SimSession).
-            self._episode_start_us = self._session().time_us
+            # from the same state as `direct`'s (rebooted autopilot, freshly seeded sensors).
+            session.reset(seed)
+            assert self.lidar is not None
+            self.lidar.reset()
+        # A PX4 just started on the episode's layout (drawn from `seed` by SimSession).
+        self._episode_start_us = session.time_us
         self._hover_start()
+        session.take_collisions()  # the episode start's do not count
         self._collided = [False] * self.num_drones
-        self._since_us = self._session().time_us
         return self._snapshot()
 
     def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
@@ -94,14 +99,15 @@ class SessionBackend:
         session = self._session()
         if len(velocities_ned_m_s) != self.num_drones:
             raise ValueError(f"expected {self.num_drones} velocities, got {len(velocities_ned_m_s)}")
-        self._collided = [False] * self.num_drones
-        self._since_us = session.time_us
+        session.take_collisions()  # none since the last call's end, which was held
         velocities = [np.asarray(v, dtype=float) for v in velocities_ned_m_s]
         for client, velocity in zip(fleet.clients, velocities, strict=True):
             client.set_velocity_ned(velocity)
         self._await_setpoints(velocities)
         session.run_for(duration_s)
-        self._record_collisions()  # the last step's, which no pump has seen yet
+        self._collided = [False] * self.num_drones
+        for collision in session.take_collisions():
+            self._collided[collision.vehicle] = True
         return self._snapshot()
 
     def close(self) -> None:
@@ -127,10 +133,6 @@ class SessionBackend:
         try:
             session.start()
             self.session = session
-            # Each lockstep step runs the pumps before its physics step: they see the
-            # collisions of the step before, so every step of a `fly` is seen exactly once.
-            assert session.lockstep is not None
-            session.lockstep.pumps.append(self._record_collisions)
             self.fleet = Fleet(session.instances, clock=session).connect()
         except BaseException:
             self.session = session
@@ -138,23 +140,6 @@ class SessionBackend:
             raise
         assert session.sim is not None
         self.lidar = Lidar(session.sim, [v.lidar for v in self.world.vehicles])
-
-    def _reset_in_place(self, seed: int) -> None:
-        session = self._session()
-        sim = session.sim
-        assert sim is not None
-        session.hold()
-        now_us = sim.time_us
-        sim.reset(seed)
-        sim.time_us = now_us  # monotonic clock across episodes (see module docstring)
-        for k, suite in enumerate(session.sensors):
-            suite.reset(sensor_seed(seed, k))
-        for stub in session.stubs:
-            # a fresh autopilot in the same object, which the HIL client and API refer to
-            stub.__init__(stub.instance, stub.params, ground_truth_estimate=stub.ground_truth_estimate)
-        if self.lidar is not None:
-            self.lidar.reset()
-        self._episode_start_us = now_us
 
     def _stop(self) -> None:
         if self.fleet is not None:
@@ -185,36 +170,24 @@ class SessionBackend:
         session.run_for(SETTLE_S)
 
     def _await_setpoints(self, velocities: list[np.ndarray]) -> None:
-        """Hold time until every in-process stub has received its new setpoint.
-
-        MAVSDK sends from its own threads in wall time: on a busy machine a datagram can reach
-        the stub several simulated steps after the clock resumed, so the same actions would fly
-        differently from run to run (and from `direct`). The held simulation waits for the
-        delivery instead, pumping the stubs' sockets itself. A real PX4 has no in-process view;
-        it reads its socket in lockstep as PX4 does.
-        """
+        """Hold time until every in-process stub has received its new setpoint, so that it
+        takes effect at the first step of the span, as in `direct` (see
+        `SimSession.deliver_pending_commands`; a no-op for PX4, which reads its socket in
+        lockstep)."""
         session = self._session()
         stubs = session.stubs
-        if not stubs or session.runner is None:
-            return
-        deadline = time.monotonic() + SETPOINT_DELIVERY_TIMEOUT_S
-        while not all(np.allclose(stub.commander.offboard.velocity_ned_m_s, v, atol=1e-4)
-                      for stub, v in zip(stubs, velocities, strict=True)):
-            if time.monotonic() > deadline:
-                raise BackendError(f"{self.name}: velocity setpoints not delivered within "
-                                   f"{SETPOINT_DELIVERY_TIMEOUT_S:g} s (wall)")
-            with session.runner.exclusive() as lockstep:
-                lockstep.idle()
+
+        def delivered() -> bool:
+            return all(np.allclose(stub.offboard_setpoint.velocity_ned_m_s, v, atol=1e-4)
+                       for stub, v in zip(stubs, velocities, strict=True))
+
+        try:
+            session.deliver_pending_commands(delivered, SETPOINT_DELIVERY_TIMEOUT_S)
+        except SessionError:
+            raise BackendError(f"{self.name}: velocity setpoints not delivered within "
+                               f"{SETPOINT_DELIVERY_TIMEOUT_S:g} s (wall)") from None
 
     # -- observation ----------------------------------------------------------------------------
-    def _record_collisions(self) -> None:
-        sim = self.session.sim if self.session is not None else None
-        if sim is None:
-            return
-        for c in sim.collisions():
-            if c.time_us > self._since_us:
-                self._collided[c.vehicle] = True
-
     def _snapshot(self) -> Snapshot:
         session = self._session()
         sim = session.sim
