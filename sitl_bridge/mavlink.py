@@ -170,20 +170,26 @@ class FrameParser:
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the complete frames now available, in order."""
         buf = self._buffer
-        buf += data
+        if buf:
+            buf += data
+            source: bytes | bytearray = buf
+        else:
+            # the usual case, whole frames per read: parse the received bytes in place (a
+            # complete frame is then a slice of them, not a copy of a copy)
+            source = data
         frames: list[Frame] = []
         pos = 0
-        size = len(buf)
+        size = len(source)
         stats = self.stats
         while pos < size:
-            magic = buf[pos]
+            magic = source[pos]
             if magic != MAVLINK2_MAGIC and magic != MAVLINK1_MAGIC:
-                found = _MAGIC.search(buf, pos)
+                found = _MAGIC.search(source, pos)
                 next_pos = found.start() if found else size
                 stats.garbage_bytes += next_pos - pos
                 pos = next_pos
                 continue
-            total = self._check(buf, pos, size, frames)
+            total = self._check(source, pos, size, frames)
             if total > 0:
                 pos += total
                 continue
@@ -193,12 +199,15 @@ class FrameParser:
                 continue
             # Incomplete: a real frame still arriving, or a fake header. Only skip it when a
             # complete valid frame follows.
-            later = self._find_complete(buf, pos + 1, size, frames)
+            later = self._find_complete(source, pos + 1, size, frames)
             if later is None:
                 break
             stats.garbage_bytes += later[0] - pos
             pos = later[0] + later[1]
-        del buf[:pos]
+        if source is buf:
+            del buf[:pos]
+        elif pos < size:
+            buf += source[pos:]  # the start of a frame still arriving
         if len(buf) > self.MAX_BUFFER:
             stats.garbage_bytes += len(buf)
             buf.clear()
@@ -217,7 +226,7 @@ class FrameParser:
         self.stats.bad_crc, self.stats.unknown_msgid = stats.bad_crc, stats.unknown_msgid
         return None
 
-    def _check(self, buf: bytearray, pos: int, size: int, frames: list[Frame]) -> int:
+    def _check(self, buf: bytes | bytearray, pos: int, size: int, frames: list[Frame]) -> int:
         """Frame at `pos`: appends it and returns its length, or _BAD / _INCOMPLETE."""
         if buf[pos] == MAVLINK2_MAGIC:
             if size - pos < MAVLINK2_HEADER_LEN:
@@ -234,28 +243,38 @@ class FrameParser:
             _, length, seq, sysid, compid, msgid = _HEADER1.unpack_from(buf, pos)
             total = MAVLINK1_HEADER_LEN + length + 2
             header_len = MAVLINK1_HEADER_LEN
-        cls = dialect.mavlink_map.get(msgid)
-        if cls is None:
+        info = _MESSAGE_INFO.get(msgid)
+        if info is None:
             # Can't check the CRC without CRC_EXTRA: treat the magic byte as garbage and
             # resynchronise on the next one rather than trusting the length byte.
             self.stats.unknown_msgid += 1
             return _BAD
         if size - pos < total:
             return _INCOMPLETE
+        crc_extra, full = info
+        # bytes(...) of a bytes slice is the slice itself; of a bytearray, one copy
         raw = bytes(buf[pos : pos + total])
         end_payload = header_len + length
-        crc = crc_mcrf4xx(_CRC_EXTRA_BYTES[cls.crc_extra], crc_mcrf4xx(memoryview(raw)[1:end_payload]))
+        crc = crc_mcrf4xx(crc_extra, crc_mcrf4xx(memoryview(raw)[1:end_payload]))
         if crc != raw[end_payload] | (raw[end_payload + 1] << 8):
             self.stats.bad_crc += 1
             return _BAD
-        full = cls.unpacker.size
         if length < full:
-            payload = raw[header_len:end_payload] + bytes(full - length)
+            payload = raw[header_len:end_payload] + _ZERO_PADDING[full - length]
         else:
             payload = raw[header_len : header_len + full]
-        frames.append(Frame(msgid, sysid, compid, seq, payload, raw))
+        frames.append(_new_frame(Frame, (msgid, sysid, compid, seq, payload, raw)))
         self.stats.frames += 1
         return total
+
+
+# msgid -> (CRC_EXTRA as a byte, full payload length), for the parser's per-frame checks
+_MESSAGE_INFO: dict[int, tuple[bytes, int]] = {
+    msgid: (_CRC_EXTRA_BYTES[cls.crc_extra], cls.unpacker.size) for msgid, cls in dialect.mavlink_map.items()
+}
+_ZERO_PADDING = [bytes(n) for n in range(256)]
+# Frame(...) goes through a Python-level __new__; tuple.__new__ builds the same object directly
+_new_frame = tuple.__new__
 
 
 def unpack_payload(frame: Frame) -> tuple:

@@ -450,7 +450,8 @@ class SimSession:
 
     # -- episodes -------------------------------------------------------------------------------
     def reset(self, seed: int | None = None) -> None:
-        """Start over in place, for the next episode: returns held at simulated time 0.
+        """Start over in place, for the next episode; returns held. Simulated time restarts
+        at 0 (restarted autopilots then run until ready, so it returns a little later).
 
         Physics and sensors: `lockstep.reset_simulation` (vehicles re-spawned, the layout drawn
         from `seed` like a new session's; sensor suite k re-seeded `sensor_seed(seed, k)`;

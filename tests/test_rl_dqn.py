@@ -139,3 +139,20 @@ def test_config_rejects_bad_values_and_documents_fields() -> None:
     docs = field_docs()
     assert set(docs) == set(TrainConfig.__dataclass_fields__)
     assert "exp(-lambda * steps)" in docs["epsilon_max"]
+
+
+def test_config_errors_name_file_key_and_flag(tmp_path) -> None:  # noqa: ANN001
+    from sitl_bridge.rl.config import apply_overrides, load_train_config
+
+    path = tmp_path / "w.yaml"
+    path.write_text("world: {}\ntrain:\n  gamma: 2\n")
+    with pytest.raises(ConfigError, match=r"w\.yaml: train\.gamma: expected a number in \[0, 1\], got 2"):
+        load_train_config(path)
+    path.write_text("train:\n  gama: 0.9\n")
+    with pytest.raises(ConfigError, match=r"train\.gama: unknown key"):
+        load_train_config(path)
+    path.write_text("train:\n  batch_size: 32\n  layers: 3\n")
+    config = load_train_config(path, {"layers": 5, "gamma": None})
+    assert (config.batch_size, config.layers, config.gamma) == (32, 5, TrainConfig().gamma)
+    with pytest.raises(ConfigError, match="command line: --learning-rate: expected a positive number"):
+        apply_overrides(config, {"learning_rate": -1.0})

@@ -169,3 +169,169 @@ def test_bad_arguments_are_config_errors() -> None:
 ])
 def test_px4_mode_names(custom_mode: int, name: str) -> None:
     assert px4_mode_name(custom_mode) == name
+
+
+# -- in-place reset (episodes) -------------------------------------------------------------
+def _armable_after_s(until_armed, run_for, step_s: float = 0.02, limit_s: float = 10.0) -> float:
+    """Simulated seconds until `until_armed()` (an arm attempt) succeeds, trying every step_s."""
+    waited = 0.0
+    while not until_armed():
+        run_for(step_s)
+        waited += step_s
+        assert waited < limit_s, "never became armable"
+    return waited
+
+
+def test_stub_autopilot_reset_is_a_warm_reboot_with_params_and_clock_kept() -> None:
+    from sitl_bridge.autopilot.stub import CommandResult, ParamTable
+    from sitl_bridge.autopilot.stub.estimator import SensorEstimator
+    from sitl_bridge.autopilot.stub.harness import StubHarness
+
+    params = ParamTable(speed_factor=0.0)
+    params.set("MIS_TAKEOFF_ALT", 3.5)
+    with StubHarness(load_world(default_world_path()), params=params) as harness:
+        ap = harness.autopilot
+        assert ap.estimator.align_s == SensorEstimator.ALIGN_S  # a new autopilot: cold boot
+        cold = _armable_after_s(lambda: ap.arm() is CommandResult.ACCEPTED, harness.run_for)
+        assert cold == pytest.approx(SensorEstimator.ALIGN_S, abs=0.05)
+        ap.takeoff()
+        harness.run_for(2.0)
+        assert ap.armed and ap.home is not None
+        clock_us = ap.time_us
+
+        controllers = (ap.commander, ap.position_control, ap.attitude_control, ap.rate_control)
+        ap.reset()
+        assert not ap.armed and ap.home is None and ap.estimate.origin is None
+        assert all(new is not old for new, old in zip(
+            (ap.commander, ap.position_control, ap.attitude_control, ap.rate_control), controllers, strict=True))
+        assert ap.params is params and ap.params["MIS_TAKEOFF_ALT"] == pytest.approx(3.5)
+        assert ap.time_us == clock_us  # telemetry never goes back in time
+        assert ap.estimator.align_s == SensorEstimator.WARM_ALIGN_S < SensorEstimator.ALIGN_S
+
+        harness.sim.reset(1)
+        harness.sensors.reset(2)
+        warm = _armable_after_s(lambda: ap.arm() is CommandResult.ACCEPTED, harness.run_for)
+        assert warm == pytest.approx(SensorEstimator.WARM_ALIGN_S, abs=0.05)
+        harness.take_off()
+        assert ap.estimate.position_valid
+
+
+def test_stub_session_resets_in_place(free_instance: int) -> None:
+    from sitl_bridge.autopilot.stub import CommandResult
+    from sitl_bridge.autopilot.stub.estimator import SensorEstimator
+
+    with SimSession("obstacle", autopilot="stub", speed_factor=0, instance_base=free_instance,
+                    seed=1) as session:
+        stub, link = session.stubs[0], session.links[0]
+        spawn = session.vehicle_state(0).position_enu_m.copy()
+        with session.exclusive():
+            _armable_after_s(lambda: stub.arm() is CommandResult.ACCEPTED, session.lockstep.run_for)
+            assert stub.takeoff() is CommandResult.ACCEPTED
+        session.run_for(3.0)
+        assert session.vehicle_state(0).position_enu_m[2] > spawn[2] + 1.0
+        assert session.take_collisions() == []  # a clean takeoff
+        wire_us = link.last_sent_time_usec
+        api_ports = session.vehicles[0].api.ports
+
+        session.reset(seed=1)
+        assert session.time_us == 0 and not session.running and session.seed == 1
+        assert session.vehicle_state(0).position_enu_m == pytest.approx(spawn, abs=1e-6)
+        assert session.stubs[0] is stub and not stub.armed and stub.home is None
+        assert session.vehicles[0].api.ports == api_ports  # MAVSDK stays connected
+        session.run_for(0.2)
+        assert session.time_us == 200_000
+        assert link.last_sent_time_usec == wire_us + 50 * session.sim.step_us  # 1 + 49 steps later
+        assert stub.time_us == link.last_sent_time_usec  # the autopilot's clock went on
+        with session.exclusive():
+            warm = _armable_after_s(lambda: stub.arm() is CommandResult.ACCEPTED, session.lockstep.run_for)
+        assert 0.2 + warm == pytest.approx(SensorEstimator.WARM_ALIGN_S, abs=0.05)
+
+
+def test_stub_session_reset_draws_the_same_episode_as_a_new_session(free_instances) -> None:
+    """After a flight and a reset, nothing of the old episode is left: the next one flies
+    exactly like the first episode of a session started with that seed."""
+    from sitl_bridge.autopilot.stub import CommandResult
+
+    def take_off(session: SimSession) -> None:
+        stub = session.stubs[0]
+        with session.exclusive():
+            _armable_after_s(lambda: stub.arm() is CommandResult.ACCEPTED, session.lockstep.run_for)
+            assert stub.takeoff() is CommandResult.ACCEPTED
+        session.run_for(2.0)
+
+    first = free_instances(2)
+    with SimSession("random_obstacle", autopilot="stub", speed_factor=0, instance_base=first, seed=0) as a, \
+            SimSession("random_obstacle", autopilot="stub", speed_factor=0, instance_base=first + 1,
+                       seed=5) as b:
+        take_off(a)
+        a.reset(seed=5)
+        b.reset(seed=5)  # also right after start: connecting let time run
+        assert a.sim.layout.goal_of(0) == b.sim.layout.goal_of(0)
+        for session in (a, b):
+            take_off(session)
+        assert a.time_us == b.time_us
+        assert a.vehicle_state(0).position_enu_m == pytest.approx(b.vehicle_state(0).position_enu_m, abs=1e-9)
+
+
+def test_deliver_pending_commands_times_out_and_external_sessions_cannot_reset(free_instance: int) -> None:
+    from sitl_bridge.session import SessionError
+
+    peer, thread = _connect_later(free_instance)
+    try:
+        with SimSession("empty", autopilot="external", speed_factor=0, instance_base=free_instance,
+                        connect_timeout_s=20) as session:
+            session.deliver_pending_commands(lambda: False)  # nothing in-process: returns at once
+            with pytest.raises(SessionError, match="external"):
+                session.reset(seed=1)
+    finally:
+        thread.join(5)
+        peer.close()
+    instance = pick_mavlink_instances(1)
+    with SimSession("empty", autopilot="stub", speed_factor=0, instance_base=instance) as session:
+        started = time.monotonic()
+        with pytest.raises(SessionError, match="not delivered"):
+            session.deliver_pending_commands(lambda: False, timeout_s=0.1)
+        assert time.monotonic() - started < 2.0
+
+
+def test_stub_process_sessions_reset_by_restarting_the_stubs() -> None:
+    instance = pick_mavlink_instances(1)
+    with SimSession("empty", autopilot="stub", speed_factor=0, instance_base=instance, stub_process=True,
+                    connect_timeout_s=30) as session:
+        session.run_for(0.5)
+        link = session.links[0]
+        wire_us = link.last_sent_time_usec
+        old_pid = session._processes[0].pid
+        session.reset(seed=2)
+        assert session.time_us == 0 and session._processes[0].pid != old_pid
+        assert link.connected and link.stats.connections == 2
+        session.run_for(0.5)  # the new stub answers in lockstep
+        assert session.time_us == 500_000 and link.last_sent_time_usec > wire_us
+        assert session.lockstep.stats.timeouts == 0
+
+
+@pytest.mark.px4
+def test_px4_sessions_reset_by_restarting_px4(px4_bin: str, tmp_path) -> None:
+    from conftest import instance_ports_free
+
+    from sitl_bridge.autopilot.px4 import px4_server_running
+    from sitl_bridge.client import OffboardClient
+
+    instance = next((i for i in range(9, -1, -1)
+                     if instance_ports_free(i) and not px4_server_running(i)), None)
+    if instance is None:
+        pytest.skip("no free PX4 instance in 0..9")
+    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=0, instance_base=instance,
+                    run_dir=tmp_path) as session:
+        session.run_for(1.0)
+        link, px4 = session.links[0], session.px4.autopilots[0]
+        wire_us, old_pid = link.last_sent_time_usec, px4.pid
+        session.reset(seed=1)
+        assert px4.pid != old_pid and px4.ready and link.stats.connections == 2
+        assert 0 < session.time_us < 60_000_000  # PX4's boot, since the reset
+        assert link.last_sent_time_usec > wire_us  # PX4's clock never goes back
+        with OffboardClient(instance, clock=session, url=session.api_urls[0]) as client:
+            client.wait_healthy(timeout_s=60)
+            client.arm()
+            client.wait_until(client.armed, "armed after the restart", 5.0)
+    assert ports_released(instance)

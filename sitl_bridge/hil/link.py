@@ -63,6 +63,7 @@ _SENSOR_CLASS = mavlink.dialect.MAVLink_hil_sensor_message
 _SENSOR_STRUCT, _SENSOR_ID, _SENSOR_CRC_EXTRA = _SENSOR_CLASS.unpacker, _SENSOR_CLASS.id, _SENSOR_CLASS.crc_extra
 _GPS_CLASS = mavlink.dialect.MAVLink_hil_gps_message
 _STATE_CLASS = mavlink.dialect.MAVLink_hil_state_quaternion_message
+_HIL_ACTUATOR_CONTROLS = mavlink.HIL_ACTUATOR_CONTROLS
 _ACTUATOR_STRUCT = struct.Struct("<QQ16fB")  # time_usec, flags, controls[16], mode
 _COMMAND_LONG_STRUCT = struct.Struct("<7fHBBB")  # param1..7, command, target sys/comp, confirmation
 
@@ -416,12 +417,13 @@ class HilLink:
         parser = self._parser
         handled = 0
         for frame in parser.feed(data):
-            if frame.msgid == mavlink.HIL_ACTUATOR_CONTROLS:
+            msgid = frame.msgid
+            if msgid == _HIL_ACTUATOR_CONTROLS:
                 self._handle_actuators(frame.payload)
                 handled += 1
-            elif frame.msgid == mavlink.HEARTBEAT:
+            elif msgid == mavlink.HEARTBEAT:
                 self._handle_heartbeat(frame)
-            elif frame.msgid == mavlink.COMMAND_LONG:
+            elif msgid == mavlink.COMMAND_LONG:
                 self._handle_command(frame)
             else:
                 self.stats.other_msgs += 1

@@ -157,12 +157,13 @@ class Lockstep:
             self._start_segment()
         sim = self.sim
         time_us = sim.time_us
-        for index, link in enumerate(self.links):
-            link.send_sensor_frame(self.sensors[index].sample(sim.state(index), time_us))
+        links = self.links
+        for index, suite in enumerate(self.sensors):
+            links[index].send_sensor_frame(suite.sample(sim.state(index), time_us))
         for pump in self.pumps:
             pump()
         self._collect_answers(time_us)
-        sim.step([link.command for link in self.links])
+        sim.step([link.command for link in links])
         for observer in self.after_step:
             observer()
         self.stats.steps += 1
@@ -334,8 +335,11 @@ class Lockstep:
 
     def _pace(self) -> None:
         factor = self._speed_factor
-        if factor <= 0.0 and not all(link.actuators_flowing for link in self.links):
-            factor = PRESTREAM_SPEED_FACTOR
+        if factor <= 0.0:
+            for link in self.links:  # a plain loop: all(generator) costs more, every step
+                if not link.actuators_flowing:
+                    factor = PRESTREAM_SPEED_FACTOR
+                    break
         if factor != self._pace_factor:
             self._pace_factor = factor
             self._reanchor()

@@ -182,7 +182,7 @@ def parse_train_node(node: Node, base: TrainConfig | None = None) -> TrainConfig
         return dataclasses.replace(base, **changes)
     except ConfigError as exc:
         # Re-point the message at the file and the `train.` key path.
-        raise ConfigError(str(exc).replace("train:", f"{node.source}: train.", 1)) from None
+        raise ConfigError(str(exc).replace("train: ", f"{node.source}: train.", 1)) from None
 
 
 def load_train_config(world_path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
@@ -199,7 +199,8 @@ def apply_overrides(config: TrainConfig, overrides: dict[str, Any]) -> TrainConf
     try:
         return dataclasses.replace(config, **changes)
     except ConfigError as exc:
-        raise ConfigError(str(exc).replace("train:", "command line: --", 1).replace("-- ", "--", 1)) from None
+        name, _, rest = str(exc).removeprefix("train: ").partition(": ")
+        raise ConfigError(f"command line: --{name.replace('_', '-')}: {rest}") from None
 
 
 def add_config_arguments(parser: argparse.ArgumentParser) -> None:

@@ -274,7 +274,7 @@ class SensorEstimator:
         q = self._q
         cx = cy = cz = 0.0   # attitude correction (body rates)
         if self._align_until_us is None:
-            self._align_until_us = time_us + int(self.ALIGN_S * 1e6)
+            self._align_until_us = time_us + int(self.align_s * 1e6)
         boost = self.ALIGN_BOOST if time_us < self._align_until_us else 1.0
         ax, ay, az = acc_b
         a_norm = math.sqrt(ax * ax + ay * ay + az * az)

@@ -60,6 +60,9 @@ _SENSOR = struct.Struct("<QfffffffffffffIB")
 _GPS = struct.Struct("<QiiiHHHhhhHBBBH")
 _STATE = struct.Struct("<Q4ffffiiihhhHHhhh")
 _ACTUATOR_CLASS = d.MAVLink_hil_actuator_controls_message
+_HIL_SENSOR = d.MAVLINK_MSG_ID_HIL_SENSOR
+_HIL_GPS = d.MAVLINK_MSG_ID_HIL_GPS
+_HIL_STATE_QUATERNION = d.MAVLINK_MSG_ID_HIL_STATE_QUATERNION
 # HIL_ACTUATOR_CONTROLS payload with controls 5..16 always 0: the same bytes as the dialect's
 # "<QQ16fB", with four arguments to pack instead of nineteen
 _ACTUATORS = struct.Struct("<QQ4f48xB")
@@ -237,17 +240,17 @@ class HilClient:
         answered = 0
         for frame in frames:
             msgid = frame.msgid
-            if msgid == d.MAVLINK_MSG_ID_HIL_SENSOR:
+            if msgid == _HIL_SENSOR:
                 if pending is not None:
                     self._step(pending)
                     answered += 1
                 pending = self._decode_sensor(frame.payload)
-            elif msgid == d.MAVLINK_MSG_ID_HIL_GPS:
+            elif msgid == _HIL_GPS:
                 gps = self._decode_gps(frame.payload)
                 self.stats.gps_msgs += 1
                 if pending is not None and gps is not None:
                     pending.gps = gps
-            elif msgid == d.MAVLINK_MSG_ID_HIL_STATE_QUATERNION:
+            elif msgid == _HIL_STATE_QUATERNION:
                 self.stats.state_msgs += 1
                 if self._wants_truth:   # only the ground-truth estimator reads it
                     self._truth = self._decode_state(frame.payload)

@@ -202,7 +202,8 @@ class MavlinkApi:
                 self._receive(link)
         self._send_streams()
         for link in self.links:
-            self._flush(link)
+            if link.outbox:
+                self._flush(link)
 
     def _receive(self, link: _Link) -> None:
         sock = link.sock
@@ -252,15 +253,21 @@ class MavlinkApi:
             log.debug("%s link send error: %s", link.name, exc)
 
     def _queue(self, link: _Link, cls: type, fields: dict) -> None:
-        link.outbox.append(self._packer.pack(cls, **fields))
+        link.outbox.append(self._packer.pack_fields(cls, fields))
 
-    def send_now(self, msgid: int, link: _Link | None = None) -> bool:
-        """Queue one message (a BUILDERS id) on one or all links; False when it has no data yet."""
+    def send_now(self, msgid: int, link: _Link | None = None, built: dict[int, dict | None] | None = None) -> bool:
+        """Queue one message (a BUILDERS id) on one or all links; False when it has no data yet.
+        `built`: fields already built at this step, by message id (filled in here)."""
         entry = telemetry.BUILDERS.get(msgid)
         if entry is None:
             return False
         cls, build = entry
-        fields = build(self.autopilot)
+        if built is None:
+            fields = build(self.autopilot)
+        elif msgid in built:
+            fields = built[msgid]
+        else:
+            fields = built[msgid] = build(self.autopilot)
         if fields is None:
             return False
         for target in [link] if link is not None else self.links:
@@ -275,6 +282,7 @@ class MavlinkApi:
         if now_us != last and (now_us >= self._next_due_any_us or last is None or now_us < last or texts):
             self._last_stream_time_us = now_us
             next_any = now_us + 10**9
+            built: dict[int, dict | None] = {}   # a message due on both links is built once
             for link in self.links:
                 due = link.next_due_us
                 for msgid, interval in link.intervals_us.items():
@@ -284,7 +292,7 @@ class MavlinkApi:
                     # stay on a fixed grid; after a gap or a clock reset start a new one
                     on_grid = t is not None and 0 <= now_us - t < interval
                     due[msgid] = t + interval if on_grid else now_us + interval
-                    if self.send_now(msgid, link) and msgid == d.MAVLINK_MSG_ID_HEARTBEAT:
+                    if self.send_now(msgid, link, built) and msgid == d.MAVLINK_MSG_ID_HEARTBEAT:
                         self._last_heartbeat_wall = wall
                 if due:
                     next_any = min(next_any, min(due.values()))

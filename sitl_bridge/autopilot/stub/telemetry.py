@@ -8,11 +8,14 @@ as a dict; `MessagePacker` turns that into a MAVLink 2 frame. Times are simulate
 from __future__ import annotations
 
 import math
+import operator
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from sitl_bridge import mavlink
 
 from .modes import MainMode
+from .vec import quat_to_euler, quat_yaw
 
 if TYPE_CHECKING:
     from .autopilot import StubAutopilot
@@ -44,18 +47,23 @@ class MessagePacker:
 
     def __init__(self, system_id: int, component_id: int) -> None:
         self.encoder = mavlink.FrameEncoder(system_id, component_id)
-        # per class: wire-order field names, or None plus the full layout when it has arrays
-        self._names: dict[type, tuple[str, ...] | None] = {}
+        # per class without arrays: (all fields zero, getter of the wire-order values);
+        # None for a class with arrays, which takes the general path over its layout
+        self._flat: dict[type, tuple[dict[str, Any], Callable[[dict[str, Any]], tuple]] | None] = {}
         self._layouts: dict[type, list[tuple[str, int]]] = {}
 
     def pack(self, cls: type, **fields: Any) -> bytes:
         """One MAVLink 2 frame of message class `cls`; missing fields are 0."""
-        names = self._names.get(cls, ())
-        if names == ():
-            names = self._learn(cls)
-        if names is not None:   # no arrays: the common, fast case
-            get = fields.get
-            return self.encoder.pack(cls, *[get(name, 0) for name in names])
+        return self.pack_fields(cls, fields)
+
+    def pack_fields(self, cls: type, fields: dict[str, Any]) -> bytes:
+        """`pack` for a fields dict already built (the streams' builders return one)."""
+        flat = self._flat.get(cls, ())
+        if flat == ():
+            flat = self._learn(cls)
+        if flat is not None:   # no arrays: the common, fast case (the merge and getter run in C)
+            zeros, getter = flat
+            return self.encoder.pack(cls, *getter({**zeros, **fields}))
         values: list[Any] = []
         for name, length in self._layouts[cls]:
             value = fields.get(name, 0)
@@ -67,15 +75,20 @@ class MessagePacker:
                 values.append(value)
         return self.encoder.pack(cls, *values)
 
-    def _learn(self, cls: type) -> tuple[str, ...] | None:
+    def _learn(self, cls: type) -> tuple[dict[str, Any], Callable[[dict[str, Any]], tuple]] | None:
         types = dict(zip(cls.fieldnames, cls.fieldtypes, strict=True))
         # char arrays travel as one bytes value ("16s"), other arrays element by element
         layout = [(name, 0 if types[name] == "char" else length)
                   for name, length in zip(cls.ordered_fieldnames, cls.array_lengths, strict=True)]
         self._layouts[cls] = layout
-        names = None if any(length for _, length in layout) else tuple(name for name, _ in layout)
-        self._names[cls] = names
-        return names
+        flat = None
+        if not any(length for _, length in layout):
+            names = [name for name, _ in layout]
+            getter = operator.itemgetter(*names)
+            # a one-field message's getter returns the value itself: always hand back a tuple
+            flat = ({name: 0 for name in names}, getter if len(names) > 1 else lambda f: (getter(f),))
+        self._flat[cls] = flat
+        return flat
 
 
 def time_boot_ms(ap: StubAutopilot) -> int:
@@ -123,46 +136,59 @@ def extended_sys_state(ap: StubAutopilot) -> dict[str, Any]:
     return dict(vtol_state=d.MAV_VTOL_STATE_MC, landed_state=int(ap.landed_state))
 
 
+# The 50 Hz builders below (attitude, attitude_quaternion, global_position_int) read the
+# estimate once and the clock straight from the commander: they run several times per
+# simulated second per link.
+
 def attitude(ap: StubAutopilot) -> dict[str, Any]:
     """ATTITUDE: Euler angles and body rates of the estimate."""
-    roll, pitch, yaw = ap.estimate.euler_rad
-    p, q, r = ap.estimate.angular_velocity_frd_rad_s
-    return dict(time_boot_ms=time_boot_ms(ap), roll=roll, pitch=pitch, yaw=yaw,
+    est = ap.estimator.estimate
+    roll, pitch, yaw = quat_to_euler(est.quaternion_ned_frd)
+    p, q, r = est.angular_velocity_frd_rad_s
+    return dict(time_boot_ms=(ap.commander.time_us // 1000) & 0xFFFFFFFF, roll=roll, pitch=pitch, yaw=yaw,
                 rollspeed=p, pitchspeed=q, yawspeed=r)
 
 
 def attitude_quaternion(ap: StubAutopilot) -> dict[str, Any]:
     """ATTITUDE_QUATERNION (w, x, y, z) of the estimate."""
-    qw, qx, qy, qz = ap.estimate.quaternion_ned_frd
-    p, q, r = ap.estimate.angular_velocity_frd_rad_s
-    return dict(time_boot_ms=time_boot_ms(ap), q1=qw, q2=qx, q3=qy, q4=qz,
+    est = ap.estimator.estimate
+    qw, qx, qy, qz = est.quaternion_ned_frd
+    p, q, r = est.angular_velocity_frd_rad_s
+    return dict(time_boot_ms=(ap.commander.time_us // 1000) & 0xFFFFFFFF, q1=qw, q2=qx, q3=qy, q4=qz,
                 rollspeed=p, pitchspeed=q, yawspeed=r)
 
 
 def local_position_ned(ap: StubAutopilot) -> dict[str, Any]:
     """LOCAL_POSITION_NED relative to the estimator's origin."""
-    x, y, z = ap.estimate.position_ned_m
-    vx, vy, vz = ap.estimate.velocity_ned_m_s
-    return dict(time_boot_ms=time_boot_ms(ap), x=x, y=y, z=z, vx=vx, vy=vy, vz=vz)
+    est = ap.estimator.estimate
+    x, y, z = est.position_ned_m
+    vx, vy, vz = est.velocity_ned_m_s
+    return dict(time_boot_ms=(ap.commander.time_us // 1000) & 0xFFFFFFFF, x=x, y=y, z=z, vx=vx, vy=vy, vz=vz)
 
 
 def _clamp_int(value: float, low: int, high: int) -> int:
     if value != value:
         return 0
-    v = int(round(value))
+    v = round(value)
     return low if v < low else high if v > high else v
+
+
+_INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
 
 
 def global_position_int(ap: StubAutopilot) -> dict[str, Any]:
     """GLOBAL_POSITION_INT: lat/lon degE7, AMSL and relative altitude mm, velocity cm/s, heading."""
-    est = ap.estimate
-    home_alt = ap.home.alt_amsl_m if ap.home else est.alt_amsl_m
+    est = ap.estimator.estimate
+    home = ap.commander.home
+    alt = est.alt_amsl_m
+    home_alt = home.alt_amsl_m if home else alt
     vx, vy, vz = est.velocity_ned_m_s
-    heading_cdeg = int(round(math.degrees(est.euler_rad[2]) * 100.0)) % 36000
-    return dict(time_boot_ms=time_boot_ms(ap), lat=_clamp_int(est.lat_deg * 1e7, -900_000_000, 900_000_000),
+    heading_cdeg = round(math.degrees(quat_yaw(est.quaternion_ned_frd)) * 100.0) % 36000
+    return dict(time_boot_ms=(ap.commander.time_us // 1000) & 0xFFFFFFFF,
+                lat=_clamp_int(est.lat_deg * 1e7, -900_000_000, 900_000_000),
                 lon=_clamp_int(est.lon_deg * 1e7, -1_800_000_000, 1_800_000_000),
-                alt=_clamp_int(est.alt_amsl_m * 1000.0, -(2**31), 2**31 - 1),
-                relative_alt=_clamp_int((est.alt_amsl_m - home_alt) * 1000.0, -(2**31), 2**31 - 1),
+                alt=_clamp_int(alt * 1000.0, _INT32_MIN, _INT32_MAX),
+                relative_alt=_clamp_int((alt - home_alt) * 1000.0, _INT32_MIN, _INT32_MAX),
                 vx=_clamp_int(vx * 100, -_INT16_MAX, _INT16_MAX), vy=_clamp_int(vy * 100, -_INT16_MAX, _INT16_MAX),
                 vz=_clamp_int(vz * 100, -_INT16_MAX, _INT16_MAX), hdg=heading_cdeg)
 

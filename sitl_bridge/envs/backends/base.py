@@ -6,8 +6,9 @@ moves) while the agent decides. Every backend implements the same setpoint seque
 simulated step, so `direct` and `stub` agree on the same seed and actions:
 
 1. `reset(seed)`: in place (the episode clock restarts at 0), every vehicle re-spawned
-   (randomised per the world, from `seed`) on the ground, autopilots fresh, sensor noise
-   re-seeded; then the episode start, observed rather than timed: arm as soon as
+   (randomised per the world, from `seed`) on the ground, autopilots rebooted (`direct`/`stub`:
+   `StubAutopilot.reset`, a warm reboot with the short alignment; `px4`: restarted), sensor
+   noise re-seeded; then the episode start, observed rather than timed: arm as soon as
    the autopilot accepts (retried every `ARM_POLL_S`), take off to the task's start altitude
    (PX4's AUTO.TAKEOFF with MIS_TAKEOFF_ALT), wait until in the air, in HOLD and within
    `TAKEOFF_TOLERANCE_M` of it, switch to offboard with a zero-velocity setpoint and let it
