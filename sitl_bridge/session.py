@@ -74,6 +74,8 @@ COLLISION_LOG_LENGTH = 4096
 """`take_collisions()` keeps at most this many (the oldest are dropped when nobody takes them)."""
 DELIVERY_TIMEOUT_S = 2.0
 """Wall seconds `deliver_pending_commands` waits by default."""
+PX4_SETPOINT_DELIVERY_S = 0.02
+"""Wall seconds a held session waits for PX4 to take in new setpoints (see `deliver_setpoints`)."""
 
 
 class SessionError(RuntimeError):
@@ -542,6 +544,32 @@ class SimSession:
                 raise SessionError(f"MAVLink commands not delivered to the stubs within {timeout_s:g} s (wall)")
             with runner.exclusive() as lockstep:
                 lockstep.idle(0.001)
+
+    def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]],
+                          timeout_s: float = DELIVERY_TIMEOUT_S) -> None:
+        """Held: make sure the velocity setpoints just sent through MAVSDK (by vehicle
+        instance) have reached their autopilots, so they take effect at the first step of the
+        next `run_for`, whatever the machine's load.
+
+        In-process stubs are served until each holds its new setpoint. A real PX4 reads its
+        MAVLink socket in wall time even while lockstep holds its clock, so a short wall wait
+        lets the datagram land. Stub subprocesses and external autopilots cannot be observed:
+        nothing to wait for.
+        """
+        if self.autopilot == "px4":
+            time.sleep(PX4_SETPOINT_DELIVERY_S)  # a delivery wait, not a flight timing
+            return
+        if not self.stubs:
+            return
+        targets = [(self.stubs[self.instances.index(instance)], tuple(float(x) for x in velocity))
+                   for instance, velocity in velocities_ned_m_s.items()]
+
+        def delivered() -> bool:
+            return all(
+                all(abs(a - b) <= 1e-4 for a, b in zip(stub.offboard_setpoint.velocity_ned_m_s, velocity, strict=True))
+                for stub, velocity in targets)
+
+        self.deliver_pending_commands(delivered, timeout_s)
 
     @property
     def real_time_factor(self) -> float:

@@ -114,6 +114,7 @@ class Fleet:
                 f"fly: expected {len(self.clients)} velocities, got {len(velocities_ned_m_s)}")
         for client, velocity in zip(self.clients, velocities_ned_m_s, strict=True):
             client.set_velocity_ned(velocity)
+        self.clock.deliver_setpoints({c.instance: c.commanded_velocity_ned_m_s for c in self.clients})
         self.clock.run_for(duration_s)
 
     def fly_actions(self, actions: Sequence[int], *, goals_ned_m: Sequence[Sequence[float] | None] | None = None,

@@ -18,7 +18,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
@@ -42,9 +42,12 @@ T = TypeVar("T")
 
 
 class SimClock(Protocol):
-    """What the client needs from the simulator: advance exactly `seconds` of simulated time."""
+    """What the client needs from the simulator: advance exactly `seconds` of simulated time,
+    after making sure setpoints just sent have reached the autopilots (by vehicle instance)."""
 
     def run_for(self, seconds: float) -> None: ...
+
+    def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]]) -> None: ...
 
 
 class OffboardClientError(RuntimeError):
@@ -405,6 +408,7 @@ class OffboardClient:
         if self.clock is None:
             raise OffboardClientError("timed legs need a simulation clock (SimSession)")
         self.set_velocity_ned(velocity_ned_m_s)
+        self.clock.deliver_setpoints({self.instance: self._velocity_ned_m_s})
         self.clock.run_for(duration_s)
 
     def fly_action(self, action: int, *, goal_ned_m: Sequence[float] | None = None,

@@ -45,7 +45,6 @@ from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.session import SessionError, SimSession
 from sitl_bridge.world import World
 
-SETPOINT_DELIVERY_TIMEOUT_S = 2.0
 """Wall seconds a velocity setpoint may take from MAVSDK to an in-process stub."""
 
 
@@ -100,11 +99,11 @@ class SessionBackend:
         if len(velocities_ned_m_s) != self.num_drones:
             raise ValueError(f"expected {self.num_drones} velocities, got {len(velocities_ned_m_s)}")
         session.take_collisions()  # none since the last call's end, which was held
-        velocities = [np.asarray(v, dtype=float) for v in velocities_ned_m_s]
-        for client, velocity in zip(fleet.clients, velocities, strict=True):
-            client.set_velocity_ned(velocity)
-        self._await_setpoints(velocities)
-        session.run_for(duration_s)
+        try:
+            # the fleet makes every setpoint reach its stub before time resumes, as in `direct`
+            fleet.fly([np.asarray(v, dtype=float) for v in velocities_ned_m_s], duration_s)
+        except SessionError as exc:
+            raise BackendError(f"{self.name}: {exc}") from None
         self._collided = [False] * self.num_drones
         for collision in session.take_collisions():
             self._collided[collision.vehicle] = True
@@ -168,24 +167,6 @@ class SessionBackend:
                       tolerance_m=TAKEOFF_TOLERANCE_M)
         fleet.start_offboard()
         session.run_for(SETTLE_S)
-
-    def _await_setpoints(self, velocities: list[np.ndarray]) -> None:
-        """Hold time until every in-process stub has received its new setpoint, so that it
-        takes effect at the first step of the span, as in `direct` (see
-        `SimSession.deliver_pending_commands`; a no-op for PX4, which reads its socket in
-        lockstep)."""
-        session = self._session()
-        stubs = session.stubs
-
-        def delivered() -> bool:
-            return all(np.allclose(stub.offboard_setpoint.velocity_ned_m_s, v, atol=1e-4)
-                       for stub, v in zip(stubs, velocities, strict=True))
-
-        try:
-            session.deliver_pending_commands(delivered, SETPOINT_DELIVERY_TIMEOUT_S)
-        except SessionError:
-            raise BackendError(f"{self.name}: velocity setpoints not delivered within "
-                               f"{SETPOINT_DELIVERY_TIMEOUT_S:g} s (wall)") from None
 
     # -- observation ----------------------------------------------------------------------------
     def _snapshot(self) -> Snapshot:
