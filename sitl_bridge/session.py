@@ -53,6 +53,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from sitl_bridge.data_paths import worlds_dirs
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil import HilError, HilLink, Lockstep, SimRunner
 from sitl_bridge.physics.simulation import Collision, Simulation, VehicleState
@@ -88,15 +89,6 @@ def sensor_seed(seed: int, vehicle: int) -> int:
 
 
 # -- world files -----------------------------------------------------------------------------
-def worlds_dirs() -> list[Path]:
-    """Where world files are looked for: $SITL_BRIDGE_WORLDS, worlds/ inside the package
-    (installed data), worlds/ of the source tree, ./worlds."""
-    here = Path(__file__).resolve().parent
-    dirs = [Path(os.environ["SITL_BRIDGE_WORLDS"])] if os.environ.get("SITL_BRIDGE_WORLDS") else []
-    dirs += [here / "worlds", here.parent / "worlds", Path.cwd() / "worlds"]
-    return [d for d in dirs if d.is_dir()]
-
-
 def resolve_world(name_or_path: str | os.PathLike[str]) -> Path:
     """A world file from a path, or a bare name (`empty`, `window.yaml`) in `worlds_dirs()`."""
     path = Path(name_or_path)

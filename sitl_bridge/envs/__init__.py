@@ -15,11 +15,11 @@ directory (`$SITL_BRIDGE_WORLDS`, else the `worlds/` folder of the source tree).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import gymnasium as gym
 
+from sitl_bridge.data_paths import worlds_dir
 from sitl_bridge.envs.backends import AUTOPILOTS, Backend, BackendError, Snapshot, make_backend
 from sitl_bridge.envs.parallel import SitlParallelEnv
 from sitl_bridge.envs.runner import OUTCOMES
@@ -41,14 +41,6 @@ PARALLEL_ENVS: dict[str, str] = {
     "sitl_bridge/TwoDronesWindow-v0": "two_drones_window.yaml",
 }
 """Ids of the multi-drone scenarios (thesis TE, TW) for `make_parallel_env`."""
-
-
-def worlds_dir() -> Path:
-    """Where registered ids find their files: `$SITL_BRIDGE_WORLDS` or the source tree's `worlds/`."""
-    override = os.environ.get("SITL_BRIDGE_WORLDS")
-    if override:
-        return Path(override)
-    return Path(__file__).resolve().parents[2] / "worlds"
 
 
 def scenario_path(scenario: str | Path) -> Path:

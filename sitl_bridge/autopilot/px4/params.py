@@ -9,11 +9,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl_bridge.data_paths import px4_params_dir
 from sitl_bridge.errors import ConfigError
 
 # Speed factor assumed for `wall` timeouts when F = 0 ("as fast as possible").
 MAX_SPEED_ASSUMED = 30.0
-PARAMS_DIR = Path(__file__).resolve().parents[3] / "px4_params"
+PARAMS_DIR = px4_params_dir()
 
 
 @dataclass(frozen=True)

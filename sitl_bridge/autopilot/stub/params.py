@@ -15,13 +15,15 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl_bridge.data_paths import px4_params_dir
+
 log = logging.getLogger(__name__)
 
 MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
 
-#: Default location of PX4 parameter dumps (repository root / px4_params).
-PX4_PARAMS_DIR = Path(__file__).resolve().parents[3] / "px4_params"
+#: Default location of the shipped PX4 parameter overrides (see sitl_bridge.data_paths).
+PX4_PARAMS_DIR = px4_params_dir()
 
 _I = MAV_PARAM_TYPE_INT32
 _F = MAV_PARAM_TYPE_REAL32
