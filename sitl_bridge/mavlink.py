@@ -110,13 +110,14 @@ class FrameEncoder:
         payload = payload.rstrip(b"\0") or b"\0"
         sequence = self.sequence
         self.sequence = (sequence + 1) & 0xFF
-        header = _HEADER2.pack(MAVLINK2_MAGIC, len(payload), 0, 0, sequence, self.system_id,
-                               self.component_id, msgid & 0xFFFF, msgid >> 16)
-        # the checksum covers everything after the magic byte, then CRC_EXTRA
-        crc = crc_mcrf4xx(_CRC_EXTRA_BYTES[crc_extra], crc_mcrf4xx(header[1:] + payload))
-        return header + payload + _CRC_BYTES(crc)
+        # everything after the magic byte, which is what the checksum covers (then CRC_EXTRA)
+        body = _HEADER2_AFTER_MAGIC.pack(len(payload), 0, 0, sequence, self.system_id, self.component_id,
+                                         msgid & 0xFFFF, msgid >> 16) + payload
+        return _MAGIC2_BYTE + body + _CRC_BYTES(crc_mcrf4xx(body + _CRC_EXTRA_BYTES[crc_extra]))
 
 
+_HEADER2_AFTER_MAGIC = struct.Struct("<BBBBBBHB")  # _HEADER2 without its first byte
+_MAGIC2_BYTE = bytes((MAVLINK2_MAGIC,))
 _CRC_BYTES = struct.Struct("<H").pack
 
 

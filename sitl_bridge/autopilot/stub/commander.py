@@ -66,8 +66,8 @@ class OffboardSetpoint:
     time_us: int = -1
 
 
-def _finite(x: float) -> bool:
-    return x == x and x not in (math.inf, -math.inf)
+# neither NaN nor infinite; the C function, as it is called several times per step
+_finite = math.isfinite
 
 
 def _nan_if_not_finite(x: float) -> float:
@@ -253,7 +253,7 @@ class Commander:
         sp = self.offboard
         if sp.time_us < 0:
             return False
-        return self.time_us - sp.time_us <= self.params["COM_OF_LOSS_T"] * 1e6
+        return self.time_us - sp.time_us <= self.params.values["COM_OF_LOSS_T"] * 1e6
 
     # --- mode entry ------------------------------------------------------------------------
     def _enter(self, mode: tuple[int, int]) -> None:
