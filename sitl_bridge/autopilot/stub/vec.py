@@ -82,7 +82,17 @@ def quat_rotate(q: Quat, v: Vec3) -> Vec3:
 
 def quat_rotate_inverse(q: Quat, v: Vec3) -> Vec3:
     """Rotate v by the inverse of q (world -> body when q is the attitude)."""
-    return quat_rotate((q[0], -q[1], -q[2], -q[3]), v)
+    # quat_rotate with the conjugate (x, y, z negated) written out: one call, not two
+    w, x, y, z = q
+    vx, vy, vz = v
+    tx = 2.0 * (z * vy - y * vz)
+    ty = 2.0 * (x * vz - z * vx)
+    tz = 2.0 * (y * vx - x * vy)
+    return (
+        vx + w * tx - y * tz + z * ty,
+        vy + w * ty - z * tx + x * tz,
+        vz + w * tz - x * ty + y * tx,
+    )
 
 
 def quat_to_euler(q: Quat) -> Vec3:
