@@ -110,7 +110,8 @@ def test_stop_leaves_no_process_behind(tmp_path):
     autopilot.start()
     pid_file = autopilot.work_dir / "child.pid"
     deadline = time.monotonic() + 5
-    while not pid_file.exists() and time.monotonic() < deadline:
+    # the shell creates the file before it writes the pid into it
+    while not (pid_file.exists() and pid_file.read_text().strip()) and time.monotonic() < deadline:
         time.sleep(0.01)
     child = int(pid_file.read_text())
     parent = autopilot.pid
