@@ -49,6 +49,35 @@ def test_direct_and_stub_agree_on_the_same_seed_and_actions(free_instance: int) 
         stub.close()
 
 
+def test_direct_and_stub_agree_with_the_ground_truth_estimator(free_instance: int) -> None:
+    """The labelled speed option: both backends fly the stub on ground truth (the `stub` one
+    on HIL_STATE_QUATERNION) and still agree."""
+    actions = [3, 5, 5, 3, 3, 3, 3, 4, 4]
+    direct = make_env(WORLDS / "obstacle.yaml", autopilot="direct", estimator="ground_truth")
+    try:
+        assert all(ap.ground_truth_estimate for ap in direct.backend.autopilots)
+        expected = fly(direct, actions, seed=2)
+    finally:
+        direct.close()
+    stub = make_env(WORLDS / "obstacle.yaml", autopilot="stub", speed_factor=0.0,
+                    instance_base=free_instance, estimator="ground_truth")
+    try:
+        got = fly(stub, actions, seed=2)
+        assert all(ap.ground_truth_estimate for ap in stub.backend.session.stubs)
+        assert len(got) == len(expected)
+        for step, (a, b) in enumerate(zip(expected, got, strict=True)):
+            assert np.linalg.norm(a - b) < 0.1, (step, a, b)
+    finally:
+        stub.close()
+
+
+def test_ground_truth_estimator_is_refused_for_px4() -> None:
+    with pytest.raises(ValueError, match="ground_truth"):
+        make_env(WORLDS / "obstacle.yaml", autopilot="px4", estimator="ground_truth")
+    with pytest.raises(ValueError, match="estimator"):
+        make_env(WORLDS / "obstacle.yaml", autopilot="direct", estimator="kalman")
+
+
 def test_stub_backend_flies_two_drones_head_on(free_instances) -> None:
     first = free_instances(2)
     env = make_parallel_env(WORLDS / "two_drones_empty.yaml", autopilot="stub",

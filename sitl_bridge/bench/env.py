@@ -1,12 +1,17 @@
 """`sitl-bridge bench --env`: env steps per second, real-time factor and reset time per backend.
 
 Flies the obstacle scenario (one drone, 35 + 6 + 6 lidar rays in every observation) with a
-seeded random policy for `--seconds` of simulated time per backend (`direct`, then `stub` on
-free vehicle instances), resetting whenever an episode ends, and prints:
+seeded random policy for `--seconds` of simulated time per configuration, resetting whenever
+an episode ends. Configurations (`CONFIGS`): `direct` with the default `sensors` estimator
+(the stub fuses the simulated sensors, as PX4 does), `direct` with the labelled
+`ground_truth` estimator (no sensor simulation or fusion; the speed option), then `stub` on
+free vehicle instances (full protocol path, `sensors`). It prints per configuration:
 
 * steps/s: env steps per wall second (each step = 1 s of simulated flight by default);
 * real-time factor: simulated seconds flown in steps per wall second spent in `step()`, and
-  per CPU second of this process (all its threads; less sensitive to a busy machine);
+  per CPU second of this process (all its threads: the in-process stub and MAVSDK's
+  included; the figure to compare on a busy machine, issue 5's target is >= 150x for
+  `direct`);
 * reset: wall seconds per `reset()` (mean and max) and CPU seconds of this process per reset
   (mean), the in-place episode start included; at least MIN_RESETS of them (extra resets after
   the flight when episodes were too long).
@@ -25,7 +30,9 @@ import numpy as np
 from sitl_bridge.envs import make_env, worlds_dir
 
 SCENARIO = "obstacle.yaml"
-BACKENDS = ("direct", "stub")
+CONFIGS = (("direct", "sensors"), ("direct", "ground_truth"), ("stub", "sensors"))
+"""(backend, estimator) pairs measured, in order."""
+BACKENDS = tuple(dict.fromkeys(backend for backend, _ in CONFIGS))
 MIN_RESETS = 5
 
 
@@ -40,6 +47,7 @@ class EnvFigures:
     sim_s: float
     resets: list[float]
     reset_cpu_s: list[float] = field(default_factory=list)
+    estimator: str = "sensors"
 
     @property
     def steps_per_s(self) -> float:
@@ -53,8 +61,13 @@ class EnvFigures:
     def real_time_factor_cpu(self) -> float:
         return self.sim_s / self.step_cpu_s if self.step_cpu_s > 0 else 0.0
 
+    @property
+    def label(self) -> str:
+        """`direct`, `direct/ground_truth`, `stub`, ... (the estimator when not the default)."""
+        return self.backend if self.estimator == "sensors" else f"{self.backend}/{self.estimator}"
+
     def line(self) -> str:
-        return (f"{self.backend:>7}: {self.steps_per_s:7.1f} env steps/s, real-time factor "
+        return (f"{self.label:>19}: {self.steps_per_s:7.1f} env steps/s, real-time factor "
                 f"{self.real_time_factor:6.1f}x wall ({self.real_time_factor_cpu:.1f}x per CPU s), "
                 f"reset {np.mean(self.resets):.3f} s mean / "
                 f"{np.max(self.resets):.3f} s max wall, {np.mean(self.reset_cpu_s):.3f} s CPU "
@@ -79,13 +92,15 @@ def _free_instance() -> int:
     raise RuntimeError("no free vehicle instance for the stub backend")
 
 
-def measure(backend: str, scenario: Path, seconds: float, seed: int = 0) -> EnvFigures:
-    """Fly `seconds` of simulated time of random actions on `backend`."""
+def measure(backend: str, scenario: Path, seconds: float, seed: int = 0,
+            estimator: str = "sensors") -> EnvFigures:
+    """Fly `seconds` of simulated time of random actions on `backend` with `estimator`."""
     instance = _free_instance() if backend != "direct" else 0
-    env = make_env(scenario, autopilot=backend, speed_factor=0.0, seed=seed, instance_base=instance)
+    env = make_env(scenario, autopilot=backend, speed_factor=0.0, seed=seed, instance_base=instance,
+                   estimator=estimator)
     rng = np.random.default_rng(seed)
     step_s = env.scenario.task.action.step_s
-    figures = EnvFigures(backend, 0, 0.0, 0.0, 0.0, [])
+    figures = EnvFigures(backend, 0, 0.0, 0.0, 0.0, [], estimator=estimator)
     try:
         env.reset(seed=seed)  # first start builds everything; not a reset figure
         while figures.sim_s < seconds:
@@ -112,17 +127,18 @@ def _timed_reset(env, figures: EnvFigures) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Print the figures of every backend that can run here."""
+    """Print the figures of every configuration that can run here."""
     seconds = float(getattr(args, "seconds", 20.0))
     scenario = worlds_dir() / SCENARIO
-    print(f"env benchmark: {SCENARIO}, random actions, {seconds:g} s simulated per backend")
+    print(f"env benchmark: {SCENARIO}, random actions, {seconds:g} s simulated per configuration")
     status = 0
-    for backend in BACKENDS:
+    for backend, estimator in CONFIGS:
+        label = backend if estimator == "sensors" else f"{backend}/{estimator}"
         try:
-            print(measure(backend, scenario, seconds).line(), flush=True)
+            print(measure(backend, scenario, seconds, estimator=estimator).line(), flush=True)
         except ImportError as exc:
-            print(f"{backend:>7}: unavailable ({exc})")
+            print(f"{label:>19}: unavailable ({exc})")
         except Exception as exc:  # a failing backend is a result to report, not a crash
-            print(f"{backend:>7}: FAILED: {type(exc).__name__}: {exc}")
+            print(f"{label:>19}: FAILED: {type(exc).__name__}: {exc}")
             status = 1
     return status

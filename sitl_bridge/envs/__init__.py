@@ -20,7 +20,14 @@ from pathlib import Path
 import gymnasium as gym
 
 from sitl_bridge.data_paths import worlds_dir
-from sitl_bridge.envs.backends import AUTOPILOTS, Backend, BackendError, Snapshot, make_backend
+from sitl_bridge.envs.backends import (
+    AUTOPILOTS,
+    ESTIMATORS,
+    Backend,
+    BackendError,
+    Snapshot,
+    make_backend,
+)
 from sitl_bridge.envs.parallel import SitlParallelEnv
 from sitl_bridge.envs.runner import OUTCOMES
 from sitl_bridge.envs.scenario import Scenario, load_scenario
@@ -52,20 +59,24 @@ def scenario_path(scenario: str | Path) -> Path:
 
 def make_env(scenario: str | Path, *, autopilot: str = "direct", speed_factor: float = 0.0,
              seed: int | None = None, drone: int = 0, instance_base: int = 0,
-             px4_bin: str | None = None, gui: bool = False) -> SitlEnv:
-    """A single-drone Gymnasium env for a scenario file or registered id (see `SitlEnv`)."""
+             px4_bin: str | None = None, gui: bool = False, estimator: str = "sensors") -> SitlEnv:
+    """A single-drone Gymnasium env for a scenario file or registered id (see `SitlEnv`).
+
+    `estimator="ground_truth"` is the labelled speed shortcut (no sensor simulation or fusion
+    in `direct`); the default `"sensors"` is the realistic one (see `ESTIMATORS`)."""
     return SitlEnv(scenario_path(scenario), autopilot=autopilot, speed_factor=speed_factor,
-                   seed=seed, drone=drone, instance_base=instance_base, px4_bin=px4_bin, gui=gui)
+                   seed=seed, drone=drone, instance_base=instance_base, px4_bin=px4_bin, gui=gui,
+                   estimator=estimator)
 
 
 def make_parallel_env(scenario: str | Path, *, autopilot: str = "direct",
                       speed_factor: float = 0.0, seed: int | None = None,
                       instance_base: int = 0, px4_bin: str | None = None,
-                      gui: bool = False) -> SitlParallelEnv:
+                      gui: bool = False, estimator: str = "sensors") -> SitlParallelEnv:
     """A PettingZoo ParallelEnv for a scenario file or id (see `SitlParallelEnv`)."""
     return SitlParallelEnv(scenario_path(scenario), autopilot=autopilot,
                            speed_factor=speed_factor, seed=seed, instance_base=instance_base,
-                           px4_bin=px4_bin, gui=gui)
+                           px4_bin=px4_bin, gui=gui, estimator=estimator)
 
 
 def _register() -> None:
@@ -78,7 +89,7 @@ def _register() -> None:
 _register()
 
 __all__ = [
-    "AUTOPILOTS", "OUTCOMES", "PARALLEL_ENVS", "SINGLE_ENVS", "Backend", "BackendError",
+    "AUTOPILOTS", "ESTIMATORS", "OUTCOMES", "PARALLEL_ENVS", "SINGLE_ENVS", "Backend", "BackendError",
     "Scenario", "SitlEnv", "SitlParallelEnv", "Snapshot", "load_scenario", "make_backend",
     "make_env", "make_parallel_env", "scenario_path", "worlds_dir",
 ]

@@ -37,7 +37,8 @@ class SitlParallelEnv(ParallelEnv):
     ## Arguments
     ```python
     sitl_bridge.envs.make_parallel_env("worlds/two_drones_empty.yaml", autopilot="direct",
-                                       speed_factor=0.0, seed=None, instance_base=0, px4_bin=None)
+                                       speed_factor=0.0, seed=None, instance_base=0, px4_bin=None,
+                                       estimator="sensors")
     ```
     Same meanings as for `SitlEnv`.
 
@@ -50,12 +51,12 @@ class SitlParallelEnv(ParallelEnv):
     def __init__(self, scenario: str | Path | Scenario, *, autopilot: str = "direct",
                  speed_factor: float = 0.0, seed: int | None = None, instance_base: int = 0,
                  px4_bin: str | None = None, gui: bool = False,
-                 backend: Backend | None = None) -> None:
+                 backend: Backend | None = None, estimator: str = "sensors") -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.backend = backend or make_backend(
             autopilot, self.scenario.world, start_altitude_m=self.scenario.task.start_altitude_m,
             speed_factor=speed_factor, seed=0 if seed is None else seed,
-            instance_base=instance_base, px4_bin=px4_bin, gui=gui)
+            instance_base=instance_base, px4_bin=px4_bin, gui=gui, estimator=estimator)
         self.runner = EpisodeRunner(self.scenario, self.backend)
         self.possible_agents = [v.name for v in self.scenario.world.vehicles]
         self.agents: list[str] = []

@@ -97,6 +97,10 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     (real PX4 SITL from `px4_bin` / `PX4_BIN`). `speed_factor`: simulated/wall time pacing for
     `stub`/`px4` (0 = as fast as possible). `seed`: seeds the first `reset()` without a seed.
     `instance_base`: first vehicle instance (ports 4560+i, 14540+i, ...).
+    `estimator`: `sensors` (default: the stub estimates its state from the simulated, noisy
+    sensors, as PX4 does) or `ground_truth` (a labelled speed shortcut for `direct`/`stub`: the
+    stub flies on the simulator's noise-free state, and `direct` skips the sensor simulation;
+    not what PX4 sees; see `sitl_bridge.envs.ESTIMATORS`).
 
     ## Version History
     * v0: initial version (thesis scenarios E, ER, O, OR, W, street; backends direct/stub/px4).
@@ -107,7 +111,7 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     def __init__(self, scenario: str | Path | Scenario, *, autopilot: str = "direct",
                  speed_factor: float = 0.0, seed: int | None = None, drone: int = 0,
                  instance_base: int = 0, px4_bin: str | None = None, gui: bool = False,
-                 backend: Backend | None = None) -> None:
+                 backend: Backend | None = None, estimator: str = "sensors") -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         if not 0 <= drone < self.scenario.num_drones:
             raise ValueError(f"drone must be in 0..{self.scenario.num_drones - 1}, got {drone}")
@@ -115,7 +119,7 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
         self.backend = backend or make_backend(
             autopilot, self.scenario.world, start_altitude_m=self.scenario.task.start_altitude_m,
             speed_factor=speed_factor, seed=0 if seed is None else seed,
-            instance_base=instance_base, px4_bin=px4_bin, gui=gui)
+            instance_base=instance_base, px4_bin=px4_bin, gui=gui, estimator=estimator)
         self.runner = EpisodeRunner(self.scenario, self.backend)
         self.action_space = spaces.Discrete(NUM_ACTIONS)
         self.observation_space = observation_space(self.scenario)

@@ -61,6 +61,13 @@ class RotorSet:
         self._alpha_down = math.exp(-step_s / params.time_constant_down_s)
         self._positions = params.rotor_positions_flu_m
         self._yaw_moment = tuple(-d * params.moment_constant_m for d in params.rotor_directions)
+        # constants of the per-step path, unpacked once (attribute look-ups cost more than the math)
+        self._roll_arms = tuple(r[1] for r in self._positions)     # torque x = sum(y_i T_i)
+        self._pitch_arms = tuple(-r[0] for r in self._positions)   # torque y = -sum(x_i T_i)
+        self._kf = params.motor_constant_n_s2
+        self._inv_max_airspeed = 1.0 / params.max_relative_airspeed_m_s
+        self._drag = -params.rotor_drag_coefficient
+        self._map = (params.input_scaling_rad_s, params.zero_position_armed_rad_s, params.max_rotor_speed_rad_s)
 
     def reset(self) -> None:
         self.speeds_rad_s = [0.0, 0.0, 0.0, 0.0]
@@ -73,10 +80,9 @@ class RotorSet:
 
     def update_speeds(self, controls: tuple[float, ...], armed: bool) -> None:
         """Advance the motor lag one step toward omega_ref = 1000 u + 100 (armed) or 0."""
-        p = self.params
         speeds = self.speeds_rad_s
         up, down = self._alpha_up, self._alpha_down
-        scale, zero, top = p.input_scaling_rad_s, p.zero_position_armed_rad_s, p.max_rotor_speed_rad_s
+        scale, zero, top = self._map
         for i in range(4):
             if armed:
                 u = controls[i]
@@ -93,26 +99,19 @@ class RotorSet:
 
     def wrench(self, velocity_flu_m_s: Vec3) -> tuple[Vec3, Vec3]:
         """(force, torque) on the body in FLU at the centre of mass, from thrust, yaw moment and drag."""
-        p = self.params
         vx, vy, vz = velocity_flu_m_s
         # thrust fades with axial airspeed (Gazebo's maxRelativeAirspeed scaling)
-        fade = 1.0 - abs(vz) / p.max_relative_airspeed_m_s
-        fade = 0.0 if fade < 0.0 else fade
-        kf = p.motor_constant_n_s2 * fade
-        tx = ty = tz = 0.0
-        thrust_total = 0.0
-        speed_sum = 0.0
-        positions = self._positions
-        moments = self._yaw_moment
-        for i, w in enumerate(self.speeds_rad_s):
-            thrust = kf * w * w
-            rx, ry, _ = positions[i]
-            tx += ry * thrust
-            ty -= rx * thrust
-            tz += moments[i] * thrust
-            thrust_total += thrust
-            speed_sum += w
+        fade = 1.0 - abs(vz) * self._inv_max_airspeed
+        kf = self._kf * fade if fade > 0.0 else 0.0
+        # unrolled over the four rotors: this runs every physics step
+        w0, w1, w2, w3 = self.speeds_rad_s
+        t0, t1, t2, t3 = kf * w0 * w0, kf * w1 * w1, kf * w2 * w2, kf * w3 * w3
+        x0, x1, x2, x3 = self._roll_arms
+        y0, y1, y2, y3 = self._pitch_arms
+        z0, z1, z2, z3 = self._yaw_moment
         # rotor drag opposes the velocity perpendicular to the rotor axes (applied at the CoM:
         # the moment from the 2 cm rotor height and the 1e-6 rolling moment are negligible)
-        drag = -p.rotor_drag_coefficient * speed_sum
-        return (drag * vx, drag * vy, thrust_total), (tx, ty, tz)
+        drag = self._drag * (w0 + w1 + w2 + w3)
+        return ((drag * vx, drag * vy, t0 + t1 + t2 + t3),
+                (x0 * t0 + x1 * t1 + x2 * t2 + x3 * t3, y0 * t0 + y1 * t1 + y2 * t2 + y3 * t3,
+                 z0 * t0 + z1 * t1 + z2 * t2 + z3 * t3))

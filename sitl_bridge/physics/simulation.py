@@ -34,6 +34,12 @@ __all__ = ["Collision", "MotorCommand", "PhysicsError", "Simulation", "VehicleSt
 
 Vec3 = tuple[float, float, float]
 _WORLD_FRAME = p.WORLD_FRAME
+# the per-step pybullet calls, looked up once (module attribute look-ups add up at 250 Hz)
+_apply_force = p.applyExternalForce
+_apply_torque = p.applyExternalTorque
+_step_simulation = p.stepSimulation
+_get_pose = p.getBasePositionAndOrientation
+_get_velocity = p.getBaseVelocity
 #: A spawn whose body centre is less than this above resting height starts resting on the ground.
 GROUND_SNAP_M = 0.02
 #: Physics steps run before time 0 so vehicles spawned on the ground start settled on it.
@@ -129,36 +135,42 @@ class Simulation:
         if len(commands) != len(vehicles):
             raise ValueError(f"expected {len(vehicles)} motor commands, got {len(commands)}")
         cid = self.client_id
-        for body, mover in self._movers:
+        movers = self._movers
+        for body, mover in movers:
             pose = mover.pose()
             p.resetBasePositionAndOrientation(body, pose.position_m, self._facing(pose.yaw_rad, pose.pitch_rad),
                                               physicsClientId=cid)
             p.resetBaseVelocity(body, pose.velocity_m_s, (0.0, 0.0, 0.0), physicsClientId=cid)
-        for v, cmd in zip(vehicles, commands, strict=True):
+        speeds_before = []
+        for v, cmd in zip(vehicles, commands, strict=False):  # lengths checked above
             r00, r01, r02, r10, r11, r12, r20, r21, r22 = v.rotation
             vx, vy, vz = v.velocity
-            # body-frame velocity (R^T v) for rotor drag and the thrust fade
-            (fx, fy, fz), (tx, ty, tz) = v.rotors.step(
-                cmd.controls, cmd.armed,
+            speeds_before.append(math.sqrt(vx * vx + vy * vy + vz * vz))  # for the collision report
+            # body-frame velocity (R^T v) for rotor drag and the thrust fade; the wrench from the
+            # current rotor speeds, then the speeds' update (RotorSet.step, one call less)
+            rotors = v.rotors
+            (fx, fy, fz), (tx, ty, tz) = rotors.wrench(
                 (r00 * vx + r10 * vy + r20 * vz, r01 * vx + r11 * vy + r21 * vz, r02 * vx + r12 * vy + r22 * vz))
-            p.applyExternalForce(v.body, -1, (r00 * fx + r01 * fy + r02 * fz, r10 * fx + r11 * fy + r12 * fz,
-                                              r20 * fx + r21 * fy + r22 * fz), v.position, _WORLD_FRAME,
-                                 physicsClientId=cid)
-            p.applyExternalTorque(v.body, -1, (r00 * tx + r01 * ty + r02 * tz, r10 * tx + r11 * ty + r12 * tz,
-                                               r20 * tx + r21 * ty + r22 * tz), _WORLD_FRAME, physicsClientId=cid)
-        p.stepSimulation(physicsClientId=cid)
+            rotors.update_speeds(cmd.controls, cmd.armed)
+            body = v.body
+            _apply_force(body, -1, (r00 * fx + r01 * fy + r02 * fz, r10 * fx + r11 * fy + r12 * fz,
+                                    r20 * fx + r21 * fy + r22 * fz), v.position, _WORLD_FRAME, physicsClientId=cid)
+            _apply_torque(body, -1, (r00 * tx + r01 * ty + r02 * tz, r10 * tx + r11 * ty + r12 * tz,
+                                     r20 * tx + r21 * ty + r22 * tz), _WORLD_FRAME, physicsClientId=cid)
+        _step_simulation(physicsClientId=cid)
         self.time_us += self.step_us
-        for _, mover in self._movers:
+        for _, mover in movers:
             mover.advance(self.step_s)
-        self._collisions = []
-        speeds_before = []
+        if self._collisions:
+            self._collisions = []
+        read_state = self._read_state
         for v in vehicles:
-            speeds_before.append(math.sqrt(v.velocity[0] ** 2 + v.velocity[1] ** 2 + v.velocity[2] ** 2))
-            self._read_state(v)
+            read_state(v)
         # all states first: the vehicle-vehicle test needs every vehicle's new position
         top_speed = max(speeds_before)
-        for v, speed in zip(vehicles, speeds_before, strict=True):
-            self._detect_collisions(v, speed, top_speed)
+        detect = self._detect_collisions
+        for v, speed in zip(vehicles, speeds_before, strict=False):  # same length
+            detect(v, speed, top_speed)
 
     def state(self, vehicle: int) -> VehicleState:
         """The vehicle's state after the last step (or at spawn before the first step)."""
@@ -177,6 +189,11 @@ class Simulation:
     def collisions(self) -> list[Collision]:
         """Collisions detected during the last step."""
         return list(self._collisions)
+
+    @property
+    def has_collisions(self) -> bool:
+        """Whether the last step detected any collision (no list copy: for per-step loops)."""
+        return bool(self._collisions)
 
     def reset(self, seed: int | None = None) -> None:
         """Back to time 0 with a freshly drawn layout (re-seeded when `seed` is given).
@@ -323,22 +340,26 @@ class Simulation:
 
     def _read_state(self, v: _Vehicle) -> None:
         cid = self.client_id
-        pos, orn = p.getBasePositionAndOrientation(v.body, physicsClientId=cid)
-        lin, ang = p.getBaseVelocity(v.body, physicsClientId=cid)
+        pos, orn = _get_pose(v.body, physicsClientId=cid)
+        lin, ang = _get_velocity(v.body, physicsClientId=cid)
         check = pos[0] + pos[1] + pos[2] + lin[0] + lin[1] + lin[2]
         if not -1e7 < check < 1e7:  # NaN fails too
             raise PhysicsError(f"vehicle {v.name}: state is no longer finite (position {pos}, velocity {lin})"
                                "; reset the simulation")
-        q = (orn[3], orn[0], orn[1], orn[2])
-        rotation = quat_to_matrix_t(q)
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation
+        x, y, z, w = orn
+        # quat_to_matrix_t written out (once per vehicle per step)
+        xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
+        rotation = (r00, r01, r02, r10, r11, r12, r20, r21, r22) = (
+            1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy),
+            2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx),
+            2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy))
         inv_dt = self._inv_step_s
         old = v.velocity
         ax, ay, az = (lin[0] - old[0]) * inv_dt, (lin[1] - old[1]) * inv_dt, (lin[2] - old[2]) * inv_dt
         fz_world = az + self.gravity_m_s2
-        wx, wy, wz = ang
+        ox, oy, oz = ang
         v.position = pos
-        v.q_wxyz = q
+        v.q_wxyz = (w, x, y, z)
         v.rotation = rotation
         v.velocity = lin
         v.angular_world = ang
@@ -346,8 +367,8 @@ class Simulation:
         # specific force and body rates: world vectors rotated into the body (R^T)
         v.specific_force_flu = (r00 * ax + r10 * ay + r20 * fz_world, r01 * ax + r11 * ay + r21 * fz_world,
                                 r02 * ax + r12 * ay + r22 * fz_world)
-        v.angular_flu = (r00 * wx + r10 * wy + r20 * wz, r01 * wx + r11 * wy + r21 * wz,
-                         r02 * wx + r12 * wy + r22 * wz)
+        v.angular_flu = (r00 * ox + r10 * oy + r20 * oz, r01 * ox + r11 * oy + r21 * oz,
+                         r02 * ox + r12 * oy + r22 * oz)
         v.cached = None
 
     def _may_touch(self, v: _Vehicle, margin_m: float, vehicle_margin_m: float) -> bool:

@@ -259,21 +259,29 @@ class SensorSuite:
         nz = noise.block[noise.next]
         noise.next += 1
         sa, sg = self._sigma_accel, self._sigma_gyro
-        fx, fy, fz = flu_to_frd_xyz(*force_flu)
-        gx, gy, gz = flu_to_frd_xyz(*omega_flu)
-        imu = [fx + sa * nz[0], fy + sa * nz[1], fz + sa * nz[2], gx + sg * nz[3], gy + sg * nz[4], gz + sg * nz[5]]
+        # FLU -> FRD (x, -y, -z) and ENU -> NED (y, x, -z) written out below: this runs every step
+        fx, fy, fz = force_flu
+        gx, gy, gz = omega_flu
+        gy, gz = -gy, -gz
+        n0, n1, n2, n3, n4, n5 = nz
+        a0, a1, a2 = fx + sa * n0, sa * n1 - fy, sa * n2 - fz
+        g0, g1, g2 = gx + sg * n3, gy + sg * n4, gz + sg * n5
         a_max, g_max = ACCEL_LIMIT_M_S2, GYRO_LIMIT_RAD_S
-        if not (-a_max < imu[0] < a_max and -a_max < imu[1] < a_max and -a_max < imu[2] < a_max
-                and -g_max < imu[3] < g_max and -g_max < imu[4] < g_max and -g_max < imu[5] < g_max):
-            imu = [_clamp(x, a_max) for x in imu[:3]] + [_clamp(x, g_max) for x in imu[3:]]
-        accel = np.array(imu[:3])
-        gyro = np.array(imu[3:])
+        if not (-a_max < a0 < a_max and -a_max < a1 < a_max and -a_max < a2 < a_max
+                and -g_max < g0 < g_max and -g_max < g1 < g_max and -g_max < g2 < g_max):
+            a0, a1, a2 = _clamp(a0, a_max), _clamp(a1, a_max), _clamp(a2, a_max)
+            g0, g1, g2 = _clamp(g0, g_max), _clamp(g1, g_max), _clamp(g2, g_max)
+        accel = np.array((a0, a1, a2))
+        gyro = np.array((g0, g1, g2))
 
         # ground truth in PX4's frames
         q_ned_frd = quat_enu_flu_to_ned_frd_t(q_enu_flu)
-        pn, pe, pd = enu_to_ned_xyz(*position_enu)
-        vn, ve, vd = enu_to_ned_xyz(*velocity_enu)
-        truth = GroundTruth._lazy((q_ned_frd, (gx, gy, gz), (vn, ve, vd), enu_to_ned_xyz(*accel_enu), (pn, pe, pd)),
+        pe, pn, pd = position_enu
+        pd = -pd
+        ve, vn, vd = velocity_enu
+        vd = -vd
+        ae, an, au = accel_enu
+        truth = GroundTruth._lazy((q_ned_frd, (gx, gy, gz), (vn, ve, vd), (an, ae, -au), (pn, pe, pd)),
                                   self._projection)
 
         mag = None
@@ -298,6 +306,16 @@ class SensorSuite:
             self._next_gps_us = time_us + self._gps_period_us
             gps = self._gps(pn, pe, pd, vn, ve, vd)
         return SensorFrame(time_us, accel, gyro, mag, baro, gps, truth)
+
+    def truth_frame(self, state: VehicleState, time_us: int) -> SensorFrame:
+        """Ground truth only, for an autopilot that flies on it (the envs' `ground_truth`
+        estimator): no sensor is simulated and no noise drawn; accel/gyro carry the noise-free
+        specific force and rates (FRD tuples), mag/baro/GPS are None. Not a PX4 input."""
+        position_enu, q_enu_flu, velocity_enu, omega_flu, force_flu, accel_enu = state.raw
+        gyro = flu_to_frd_xyz(*omega_flu)
+        truth = GroundTruth._lazy((quat_enu_flu_to_ned_frd_t(q_enu_flu), gyro, enu_to_ned_xyz(*velocity_enu),
+                                   enu_to_ned_xyz(*accel_enu), enu_to_ned_xyz(*position_enu)), self._projection)
+        return SensorFrame(time_us, flu_to_frd_xyz(*force_flu), gyro, None, None, None, truth)  # type: ignore[arg-type]
 
     def _gps(self, pn: float, pe: float, pd: float, vn: float, ve: float, vd: float) -> GpsSample:
         n = self.noise

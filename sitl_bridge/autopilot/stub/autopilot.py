@@ -28,6 +28,17 @@ _NAN = float("nan")
 POSITION_CONTROL_PERIOD_US = 8000
 _OFF = MotorCommand((0.0, 0.0, 0.0, 0.0), False)
 _IDLE = MotorCommand((0.0, 0.0, 0.0, 0.0), True)
+_FLY = Output.FLY
+_new_command = object.__new__
+_set_fields = object.__setattr__
+
+
+def _armed_command(controls: tuple[float, float, float, float]) -> MotorCommand:
+    """MotorCommand(controls, True) without the frozen dataclass's checked __init__ (every step)."""
+    command = _new_command(MotorCommand)
+    _set_fields(command, "controls", controls)
+    _set_fields(command, "armed", True)
+    return command
 
 
 class StubAutopilot:
@@ -89,11 +100,14 @@ class StubAutopilot:
     def update(self, frame: SensorFrame) -> MotorCommand:
         """Estimate, run the commander and the control cascade for one step; motor outputs."""
         est = self.estimator.update(frame)
-        dt_s = 0.0 if self._last_time_us is None else max(0, frame.time_us - self._last_time_us) * 1e-6
-        self._last_time_us = frame.time_us
+        time_us = frame.time_us
+        last = self._last_time_us
+        dt_s = 0.0 if last is None or time_us <= last else (time_us - last) * 1e-6
+        self._last_time_us = time_us
         self.steps += 1
-        output, sp = self.commander.step(est, self.thrust_collective)
-        if output is not Output.FLY:
+        commander = self.commander
+        output, sp = commander.step(est, self.thrust_collective)
+        if output is not _FLY:
             self.position_control.reset()
             self.rate_control.reset()
             self.thrust_collective = 0.0
@@ -102,19 +116,20 @@ class StubAutopilot:
             return self.last_command
 
         due = self._position_due_us
-        if due is None or frame.time_us >= due or frame.time_us < due - POSITION_CONTROL_PERIOD_US:
+        if due is None or time_us >= due or time_us < due - POSITION_CONTROL_PERIOD_US:
             # the outer loop runs at ~125 Hz like PX4's mc_pos_control on EKF2 output
             pos_dt_s = POSITION_CONTROL_PERIOD_US * 1e-6 if due is not None else dt_s
-            self._position_due_us = frame.time_us + POSITION_CONTROL_PERIOD_US
+            self._position_due_us = time_us + POSITION_CONTROL_PERIOD_US
             self._outer_loop(est, sp, pos_dt_s)
-        thrust = self.thrust_collective
-        q_sp = self.attitude_setpoint
-        yaw_rate_ff = sp.yaw_rate_rad_s if sp.yaw_rate_rad_s == sp.yaw_rate_rad_s else 0.0
-        rate_sp = self.attitude_control.update(est.quaternion_ned_frd, q_sp, yaw_rate_ff)
+        yaw_rate_ff = sp.yaw_rate_rad_s
+        if yaw_rate_ff != yaw_rate_ff:  # NaN: no feed-forward
+            yaw_rate_ff = 0.0
+        rate_sp = self.attitude_control.update(est.quaternion_ned_frd, self.attitude_setpoint, yaw_rate_ff)
+        mixer = self.mixer
         torque = self.rate_control.update(dt_s, est.angular_velocity_frd_rad_s, rate_sp,
-                                          self.mixer.saturated, self.commander.landed)
-        self.last_command = MotorCommand(self.mixer.mix(thrust, torque), True)
-        return self.last_command
+                                          mixer.saturated, commander.landed)
+        self.last_command = command = _armed_command(mixer.mix(self.thrust_collective, torque))
+        return command
 
     def _outer_loop(self, est: Estimate, sp: Setpoint, dt_s: float) -> None:
         """Position/velocity control -> collective thrust and attitude setpoint."""

@@ -111,6 +111,9 @@ class Commander:
         self._land_xy: tuple[float, float] = (_NAN, _NAN)
         self._rtl_phase = 0
         self._last_setpoint = Setpoint()
+        # the OFFBOARD setpoint of the last step and what it was built from: reused while the
+        # offboard message and the yaw are the same (a new one only at the 20 Hz resends)
+        self._offboard_sp: tuple[OffboardSetpoint, float, Setpoint] | None = None
         self._dt_s = 0.0
 
     # --- state as MAVLink sees it --------------------------------------------------------
@@ -399,8 +402,13 @@ class Commander:
                 self._yaw_sp = o.yaw_rad
             elif _finite(o.yaw_rate_rad_s):
                 self._yaw_sp = wrap_pi(self._yaw_sp + o.yaw_rate_rad_s * self._dt_s)
-            return Setpoint(o.position_ned_m, o.velocity_ned_m_s, self._yaw_sp,
-                            o.yaw_rate_rad_s if _finite(o.yaw_rate_rad_s) and not _finite(o.yaw_rad) else _NAN)
+            cached = self._offboard_sp
+            if cached is not None and cached[0] is o and cached[1] == self._yaw_sp:
+                return cached[2]
+            sp = Setpoint(o.position_ned_m, o.velocity_ned_m_s, self._yaw_sp,
+                          o.yaw_rate_rad_s if _finite(o.yaw_rate_rad_s) and not _finite(o.yaw_rad) else _NAN)
+            self._offboard_sp = (o, self._yaw_sp, sp)
+            return sp
         if mode == TAKEOFF:
             t = self._takeoff_target
             if abs(e.position_ned_m[2] - t[2]) < self._TAKEOFF_ACCEPT_M and not self.landed:

@@ -96,6 +96,19 @@ class PositionControl:
         self.velocity_integral = [0.0, 0.0, 0.0]   # m/s^2
         self.velocity_setpoint_ned_m_s: Vec3 = (0.0, 0.0, 0.0)
         self.thrust_setpoint_ned: Vec3 = (0.0, 0.0, -params["MPC_THR_HOVER"])
+        self._gains_version = -1
+        self._gains: tuple[float, ...] = ()
+
+    def _load_gains(self) -> None:
+        # re-read only when a parameter changed: eighteen dict look-ups per call add up
+        p = self.params.values
+        hover = p["MPC_THR_HOVER"]
+        self._gains = (p["MPC_XY_P"], p["MPC_Z_P"], p["MPC_XY_VEL_MAX"], p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"],
+                       p["MPC_XY_VEL_P_ACC"], p["MPC_XY_VEL_I_ACC"], p["MPC_XY_VEL_D_ACC"],
+                       p["MPC_Z_VEL_P_ACC"], p["MPC_Z_VEL_I_ACC"], p["MPC_Z_VEL_D_ACC"],
+                       p["MPC_THR_MIN"], p["MPC_THR_MAX"], GRAVITY_M_S2 / max(hover, 1e-3),
+                       math.radians(p["MPC_TILTMAX_AIR"]), hover)
+        self._gains_version = self.params.version
 
     def reset(self) -> None:
         """Clear the integrators (on the ground, on mode changes that need it)."""
@@ -104,11 +117,13 @@ class PositionControl:
     def update(self, dt_s: float, sp: Setpoint, position_ned_m: Vec3, velocity_ned_m_s: Vec3,
                accel_ned_m_s2: Vec3) -> Vec3:
         """Thrust setpoint in NED, normalised (|thrust| = fraction of full collective thrust)."""
-        p = self.params.values
+        if self._gains_version != self.params.version:
+            self._load_gains()
+        (gain_xy, gain_z, xy_max, up_max_param, down_max_param, kp_xy, ki_xy, kd_xy, kp_z, ki_z, kd_z,
+         thr_min, thr_max, to_acc, tilt_max_rad, hover) = self._gains
         # --- position P (+ velocity feed-forward), PX4 _positionControl. NaN = not controlled
         # (x == x is False only for NaN; setpoints are sanitised to finite-or-NaN on entry).
         psp, vff = sp.position_ned_m, sp.velocity_ned_m_s
-        gain_xy, gain_z = p["MPC_XY_P"], p["MPC_Z_P"]
         vx = (psp[0] - position_ned_m[0]) * gain_xy if psp[0] == psp[0] else 0.0
         vy = (psp[1] - position_ned_m[1]) * gain_xy if psp[1] == psp[1] else 0.0
         vz = (psp[2] - position_ned_m[2]) * gain_z if psp[2] == psp[2] else 0.0
@@ -118,24 +133,21 @@ class PositionControl:
             vy += vff[1]
         if vff[2] == vff[2]:
             vz += vff[2]
-        xy_max = p["MPC_XY_VEL_MAX"]
         speed_xy = math.sqrt(vx * vx + vy * vy)
         if speed_xy > xy_max:
             vx *= xy_max / speed_xy
             vy *= xy_max / speed_xy
         up_max = sp.max_velocity_up_m_s
         if up_max != up_max:
-            up_max = p["MPC_Z_VEL_MAX_UP"]
+            up_max = up_max_param
         down_max = sp.max_velocity_down_m_s
         if down_max != down_max:
-            down_max = p["MPC_Z_VEL_MAX_DN"]
+            down_max = down_max_param
         vz = -up_max if vz < -up_max else down_max if vz > down_max else vz
         vel_sp = (vx, vy, vz)
         self.velocity_setpoint_ned_m_s = vel_sp
 
         # --- velocity PID -> acceleration, PX4 _velocityControl
-        kp_xy, ki_xy, kd_xy = p["MPC_XY_VEL_P_ACC"], p["MPC_XY_VEL_I_ACC"], p["MPC_XY_VEL_D_ACC"]
-        kp_z, ki_z, kd_z = p["MPC_Z_VEL_P_ACC"], p["MPC_Z_VEL_I_ACC"], p["MPC_Z_VEL_D_ACC"]
         err = [vx - velocity_ned_m_s[0], vy - velocity_ned_m_s[1], vz - velocity_ned_m_s[2]]
         vi = self.velocity_integral
         acc = (
@@ -143,10 +155,9 @@ class PositionControl:
             kp_xy * err[1] + vi[1] - kd_xy * accel_ned_m_s2[1],
             kp_z * err[2] + vi[2] - kd_z * accel_ned_m_s2[2],
         )
-        thr = self._acceleration_control(acc)
+        thr = self._acceleration_control(acc, tilt_max_rad, hover, thr_min)
 
         # vertical anti-windup: stop integrating into a saturated thrust
-        thr_min, thr_max = p["MPC_THR_MIN"], p["MPC_THR_MAX"]
         if (thr[2] >= -thr_min and err[2] >= 0.0) or (thr[2] <= -thr_max and err[2] <= 0.0):
             err[2] = 0.0
         # vertical priority: what is left of the thrust goes horizontal
@@ -158,7 +169,6 @@ class PositionControl:
         # horizontal anti-windup (PX4: tracking anti-reset windup, gain 2 / P)
         if kp_xy > 1e-6:
             arw = 2.0 / kp_xy
-            to_acc = GRAVITY_M_S2 / max(p["MPC_THR_HOVER"], 1e-3)
             err[0] -= arw * (acc[0] - thr[0] * to_acc)
             err[1] -= arw * (acc[1] - thr[1] * to_acc)
         vi[0] += ki_xy * err[0] * dt_s
@@ -167,15 +177,14 @@ class PositionControl:
         self.thrust_setpoint_ned = thr
         return thr
 
-    def _acceleration_control(self, acc: Vec3) -> Vec3:
+    @staticmethod
+    def _acceleration_control(acc: Vec3, tilt_max_rad: float, hover: float, thr_min: float) -> Vec3:
         """Acceleration setpoint -> thrust vector, tilt limited (PX4 _accelerationControl)."""
-        p = self.params.values
         n = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + GRAVITY_M_S2 * GRAVITY_M_S2)
         body_z = (-acc[0] / n, -acc[1] / n, GRAVITY_M_S2 / n)
-        body_z = _limit_tilt(body_z, math.radians(p["MPC_TILTMAX_AIR"]))
-        hover = p["MPC_THR_HOVER"]
+        body_z = _limit_tilt(body_z, tilt_max_rad)
         thrust_ned_z = acc[2] * (hover / GRAVITY_M_S2) - hover
-        collective = min(thrust_ned_z / body_z[2], -p["MPC_THR_MIN"])
+        collective = min(thrust_ned_z / body_z[2], -thr_min)
         return (body_z[0] * collective, body_z[1] * collective, body_z[2] * collective)
 
 
@@ -201,20 +210,36 @@ class AttitudeControl:
         if self._gains_version != self.params.version:
             self._load_gains()
         yaw_w, roll_p, pitch_p, gain_yaw, lr, lp, ly = self._gains
-        e_z = _body_z_in_world(q)
-        e_z_d = _body_z_in_world(q_sp)
-        qd_red = quat_from_two_vectors(e_z, e_z_d)
+        # body z axes in the world (third rotation-matrix columns), written out: every step
+        w, x, y, z = q
+        ax, ay, az = 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)
+        w, x, y, z = q_sp
+        bx, by, bz = 2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)
+        dot = ax * bx + ay * by + az * bz
+        if dot < -0.999999:
+            qd_red = quat_from_two_vectors((ax, ay, az), (bx, by, bz))  # opposite: any 180 deg axis
+        else:
+            # quat_from_two_vectors' common case: normalise (1 + a.b, a x b), w > 0 already
+            w, x, y, z = 1.0 + dot, ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            n = math.sqrt(w * w + x * x + y * y + z * z)
+            qd_red = (w / n, x / n, y / n, z / n)
         if abs(qd_red[1]) > 1.0 - 1e-5 or abs(qd_red[2]) > 1.0 - 1e-5:
             qd_red = q_sp  # upside down: the full attitude is the reduced attitude
         else:
             qd_red = quat_multiply(qd_red, q)
         # the yaw left to do after the tilt, scaled down by the yaw weight
-        q_mix = quat_normalize(quat_conjugate_multiply(qd_red, q_sp))
-        w, z = q_mix[0], q_mix[3]
+        # (quat_normalize written out: only w and z of the mix are needed)
+        w, x, y, z = quat_conjugate_multiply(qd_red, q_sp)
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        if w < 0.0:
+            n = -n
+        w, z = w / n, z / n
         w = -1.0 if w < -1.0 else 1.0 if w > 1.0 else w
         z = -1.0 if z < -1.0 else 1.0 if z > 1.0 else z
-        qd = quat_multiply(qd_red, (math.cos(yaw_w * math.acos(w)), 0.0, 0.0, math.sin(yaw_w * math.asin(z))))
-        qe = quat_conjugate_multiply(q, qd)
+        # qd = qd_red * (cos, 0, 0, sin): quat_multiply with the zero terms dropped
+        cw, sz = math.cos(yaw_w * math.acos(w)), math.sin(yaw_w * math.asin(z))
+        a, b, c, d = qd_red
+        qe = quat_conjugate_multiply(q, (a * cw - d * sz, b * cw + c * sz, c * cw - b * sz, d * cw + a * sz))
         s = 2.0 if qe[0] >= 0.0 else -2.0   # canonical (shorter) error rotation
         rx, ry, rz = s * qe[1] * roll_p, s * qe[2] * pitch_p, s * qe[3] * gain_yaw
         if yaw_rate_ff_rad_s:
@@ -227,12 +252,6 @@ class AttitudeControl:
 
 
 _DEG = math.pi / 180.0
-
-
-def _body_z_in_world(q: Quat) -> Vec3:
-    """Third column of the rotation matrix of q: the body z axis in the world frame."""
-    w, x, y, z = q
-    return (2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y))
 
 
 class RateControl:

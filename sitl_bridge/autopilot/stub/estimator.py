@@ -99,6 +99,7 @@ class GroundTruthEstimator:
     def __init__(self) -> None:
         self.estimate = Estimate()
         self._origin_ned: Vec3 | None = None
+        self._m_per_deg = (1.0, 1.0)   # metres per degree of latitude, longitude at the origin
 
     def reset(self) -> None:
         """Forget everything: the next frame's truth is the new origin."""
@@ -112,21 +113,29 @@ class GroundTruthEstimator:
         if t is NO_TRUTH:
             e.time_us = frame.time_us
             return e
-        pos = t.position_ned_m
+        # `raw`: the truth as plain-float tuples (quaternion, rates, velocity, accel, position);
+        # the numpy views would cost more to build than this whole update
+        q, rates, vel, acc, (px, py, pz) = t.raw
         if self._origin_ned is None:
-            self._origin_ned = (float(pos[0]), float(pos[1]), float(pos[2]))
-            e.origin = (t.lat_e7 * 1e-7, t.lon_e7 * 1e-7, t.alt_mm * 1e-3)
+            self._origin_ned = (px, py, pz)
+            e.origin = (t.lat_e7 * 1e-7, t.lon_e7 * 1e-7, t.alt_mm * 1e-3)  # geodetic only once
+            self._m_per_deg = (math.radians(EARTH_RADIUS_M),
+                               math.radians(EARTH_RADIUS_M * math.cos(math.radians(e.origin[0]))))
         o = self._origin_ned
         e.time_us = frame.time_us
-        px, py, pz = _floats(pos)
-        e.position_ned_m = (px - o[0], py - o[1], pz - o[2])
-        e.velocity_ned_m_s = tuple(_floats(t.velocity_ned_m_s))  # type: ignore[assignment]
-        e.accel_ned_m_s2 = tuple(_floats(t.accel_ned_m_s2))  # type: ignore[assignment]
-        e.quaternion_ned_frd = tuple(_floats(t.quaternion_ned_frd))  # type: ignore[assignment]
-        e.angular_velocity_frd_rad_s = tuple(_floats(t.angular_velocity_frd_rad_s))  # type: ignore[assignment]
-        e.lat_deg = t.lat_e7 * 1e-7
-        e.lon_deg = t.lon_e7 * 1e-7
-        e.alt_amsl_m = t.alt_mm * 1e-3
+        north, east, down = px - o[0], py - o[1], pz - o[2]
+        e.position_ned_m = (north, east, down)
+        e.velocity_ned_m_s = vel
+        e.accel_ned_m_s2 = acc
+        e.quaternion_ned_frd = q
+        e.angular_velocity_frd_rad_s = rates
+        # geodetic position from the local one around the origin, as `SensorEstimator` does
+        # (cm-exact over an env's workspace; a projection per step would cost more)
+        lat0, lon0, alt0 = e.origin  # type: ignore[misc]
+        m_lat, m_lon = self._m_per_deg
+        e.lat_deg = lat0 + north / m_lat
+        e.lon_deg = lon0 + east / m_lon
+        e.alt_amsl_m = alt0 - down
         e.attitude_valid = True
         e.position_valid = True
         gps = frame.gps
@@ -182,6 +191,8 @@ class SensorEstimator:
         self._gps_accel_ned = [0.0, 0.0, 0.0]
         self._last_gps: tuple[int, Vec3] | None = None
         self._declination_rad = 0.0   # known once the origin is: heading = field heading + this
+        self._lon_radius_origin: tuple[float, float, float] | None = None
+        self._lon_radius_m = EARTH_RADIUS_M
 
     def reset(self, align_s: float | None = None) -> None:
         """Re-initialise from the next sensor samples, as after a reboot of a running vehicle,
@@ -203,9 +214,11 @@ class SensorEstimator:
         time_us = frame.time_us
         dt = 0.0 if self._last_time_us is None else (time_us - self._last_time_us) * 1e-6
         self._last_time_us = time_us
-        ax, ay, az = _floats(frame.accel_frd_m_s2)
-        acc_b = (ax, ay, az)
-        gx, gy, gz = _floats(frame.gyro_frd_rad_s)
+        acc_b = frame.accel_frd_m_s2
+        # Python floats: numpy arrays (SensorSuite) index slowly; tuples (HIL client) pass as they are
+        acc_b = acc_b if type(acc_b) is tuple else tuple(_floats(acc_b))
+        gyro = frame.gyro_frd_rad_s
+        gx, gy, gz = gyro if type(gyro) is tuple else _floats(gyro)
         gb = self._gyro_bias
         w = (gx - gb[0], gy - gb[1], gz - gb[2])
         if self._q is None:
@@ -251,10 +264,14 @@ class SensorEstimator:
         e.position_ned_m = (pos[0], pos[1], pos[2])
         e.velocity_ned_m_s = (vel[0], vel[1], vel[2])
         e.accel_ned_m_s2 = self._accel_lp
-        if e.origin is not None:
-            lat0, lon0, alt0 = e.origin
+        origin = e.origin
+        if origin is not None:
+            lat0, lon0, alt0 = origin
+            if self._lon_radius_origin is not origin:  # the cosine once per origin, not per step
+                self._lon_radius_origin = origin
+                self._lon_radius_m = EARTH_RADIUS_M * math.cos(math.radians(lat0))
             e.lat_deg = lat0 + math.degrees(pos[0] / EARTH_RADIUS_M)
-            e.lon_deg = lon0 + math.degrees(pos[1] / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+            e.lon_deg = lon0 + math.degrees(pos[1] / self._lon_radius_m)
             e.alt_amsl_m = alt0 - pos[2]
         return e
 
@@ -290,29 +307,33 @@ class SensorEstimator:
             cx = k * (my * ez - mz * ey)
             cy = k * (mz * ex - mx * ez)
             cz = k * (mx * ey - my * ex)
+        qw, qx, qy, qz = q
         if mag is not None:
             m_ned = quat_rotate(q, _floats(mag))
             # heading error about world down, applied in body frame
             heading_err = wrap_pi(self._declination_rad - math.atan2(m_ned[1], m_ned[0]))
-            zx, zy, zz = quat_rotate_inverse(q, (0.0, 0.0, 1.0))
+            # world down in the body: quat_rotate_inverse(q, (0, 0, 1)) written out
             k = self.MAG_KP * boost * heading_err
-            cx += zx * k
-            cy += zy * k
-            cz += zz * k
+            cx += 2.0 * (qx * qz - qw * qy) * k
+            cy += 2.0 * (qy * qz + qw * qx) * k
+            cz += (1.0 - 2.0 * (qx * qx + qy * qy)) * k
         gb = self._gyro_bias
         ki = self.GYRO_BIAS_KI
         gb[0] -= ki * cx * dt
         gb[1] -= ki * cy * dt
         gb[2] -= ki * cz * dt
         wx, wy, wz = w[0] + cx, w[1] + cy, w[2] + cz
-        qw, qx, qy, qz = q
         h = 0.5 * dt
-        self._q = quat_normalize((
-            qw + h * (-qx * wx - qy * wy - qz * wz),
-            qx + h * (qw * wx + qy * wz - qz * wy),
-            qy + h * (qw * wy - qx * wz + qz * wx),
-            qz + h * (qw * wz + qx * wy - qy * wx),
-        ))
+        # integrate, then quat_normalize written out (w stays positive for small steps; the
+        # sign flip keeps quat_normalize's convention when it does not)
+        nw = qw + h * (-qx * wx - qy * wy - qz * wz)
+        nx = qx + h * (qw * wx + qy * wz - qz * wy)
+        ny = qy + h * (qw * wy - qx * wz + qz * wx)
+        nz = qz + h * (qw * wz + qx * wy - qy * wx)
+        n = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+        if nw < 0.0:
+            n = -n
+        self._q = (nw / n, nx / n, ny / n, nz / n)
 
     # --- position ----------------------------------------------------------------------
     def _gps_update(self, e: Estimate, gps) -> None:

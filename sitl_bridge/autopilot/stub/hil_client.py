@@ -27,8 +27,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from sitl_bridge import mavlink
 from sitl_bridge.sensors import BaroSample, GpsSample, GroundTruth, SensorFrame
 
@@ -305,13 +303,15 @@ class HilClient:
         lat0, lon0, alt0 = self._truth_origin
         north = math.radians(lat_deg - lat0) * _EARTH_RADIUS_M
         east = math.radians(lon_deg - lon0) * _EARTH_RADIUS_M * math.cos(math.radians(lat0))
+        # plain tuples: GroundTruth keeps them as `raw` (Python floats, what the ground-truth
+        # estimator reads) and builds the numpy views only if someone asks
         return GroundTruth(
-            quaternion_ned_frd=np.array((qw, qx, qy, qz)),
-            angular_velocity_frd_rad_s=np.array((p, q, r)),
+            quaternion_ned_frd=(qw, qx, qy, qz),
+            angular_velocity_frd_rad_s=(p, q, r),
             lat_e7=lat, lon_e7=lon, alt_mm=alt_mm,
-            velocity_ned_m_s=np.array((vx * 0.01, vy * 0.01, vz * 0.01)),
-            accel_ned_m_s2=np.array((xacc * 1e-3, yacc * 1e-3, zacc * 1e-3)),
-            position_ned_m=np.array((north, east, alt0 - alt_m)),
+            velocity_ned_m_s=(vx * 0.01, vy * 0.01, vz * 0.01),
+            accel_ned_m_s2=(xacc * 1e-3, yacc * 1e-3, zacc * 1e-3),
+            position_ned_m=(north, east, alt0 - alt_m),
         )
 
     # --- standalone process -------------------------------------------------------------------

@@ -77,29 +77,36 @@ class QuadXMixer:
         tx, ty, tz = torque_norm
         k0, k1, k2, k3 = self._thrust_col
         # collective + roll/pitch, and yaw kept apart so it can be given up first
-        rp = (k0 * thrust + a0 * tx + b0 * ty, k1 * thrust + a1 * tx + b1 * ty,
-              k2 * thrust + a2 * tx + b2 * ty, k3 * thrust + a3 * tx + b3 * ty)
-        yaw = (c0 * tz, c1 * tz, c2 * tz, c3 * tz)
-        out = [rp[0] + yaw[0], rp[1] + yaw[1], rp[2] + yaw[2], rp[3] + yaw[3]]
-        hi, lo = max(out), min(out)
-        self.saturated = hi > 1.0 or lo < 0.0
+        r0, r1, r2, r3 = (k0 * thrust + a0 * tx + b0 * ty, k1 * thrust + a1 * tx + b1 * ty,
+                          k2 * thrust + a2 * tx + b2 * ty, k3 * thrust + a3 * tx + b3 * ty)
+        o0, o1, o2, o3 = r0 + c0 * tz, r1 + c1 * tz, r2 + c2 * tz, r3 + c3 * tz
+        # the common case (nothing saturated) in scalar compares, no lists (runs every step)
+        self.saturated = not (0.0 <= o0 <= 1.0 and 0.0 <= o1 <= 1.0 and 0.0 <= o2 <= 1.0 and 0.0 <= o3 <= 1.0)
         if self.saturated:
-            # Reduce yaw until roll/pitch + collective fit (or yaw is gone).
-            spread_rp = max(rp) - min(rp)
-            spread = hi - lo
-            if spread > 1.0 and spread > spread_rp:
-                scale = max(0.0, (1.0 - spread_rp) / (spread - spread_rp)) if spread_rp < 1.0 else 0.0
-                out = [rp[i] + yaw[i] * scale for i in range(4)]
-                hi, lo = max(out), min(out)
-            # Shift the collective so that the differential part fits.
-            if hi - lo <= 1.0:
-                shift = (1.0 - hi) if hi > 1.0 else (-lo if lo < 0.0 else 0.0)
-                out = [o + shift for o in out]
+            o0, o1, o2, o3 = self._desaturate((r0, r1, r2, r3), (c0 * tz, c1 * tz, c2 * tz, c3 * tz))
+        # normalised rotor thrust (now in [0, 1]) -> motor output through the simulator's rotor map
         sqrt = math.sqrt
         omega_max, scale, offset = self._omega_max, self._u_scale, self._u_offset
-        motors = []
-        for t in out:
-            t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
-            u = (omega_max * sqrt(t) - offset) / scale
-            motors.append(0.0 if u < 0.0 else 1.0 if u > 1.0 else u)
-        return (motors[0], motors[1], motors[2], motors[3])
+        u0, u1 = (omega_max * sqrt(o0) - offset) / scale, (omega_max * sqrt(o1) - offset) / scale
+        u2, u3 = (omega_max * sqrt(o2) - offset) / scale, (omega_max * sqrt(o3) - offset) / scale
+        return (0.0 if u0 < 0.0 else 1.0 if u0 > 1.0 else u0, 0.0 if u1 < 0.0 else 1.0 if u1 > 1.0 else u1,
+                0.0 if u2 < 0.0 else 1.0 if u2 > 1.0 else u2, 0.0 if u3 < 0.0 else 1.0 if u3 > 1.0 else u3)
+
+    @staticmethod
+    def _desaturate(rp: tuple[float, ...], yaw: tuple[float, ...]) -> list[float]:
+        """Outputs out of [0, 1]: give up yaw first, then shift the collective (PX4 non-airmode),
+        finally clip to [0, 1]."""
+        out = [rp[i] + yaw[i] for i in range(4)]
+        hi, lo = max(out), min(out)
+        # Reduce yaw until roll/pitch + collective fit (or yaw is gone).
+        spread_rp = max(rp) - min(rp)
+        spread = hi - lo
+        if spread > 1.0 and spread > spread_rp:
+            scale = max(0.0, (1.0 - spread_rp) / (spread - spread_rp)) if spread_rp < 1.0 else 0.0
+            out = [rp[i] + yaw[i] * scale for i in range(4)]
+            hi, lo = max(out), min(out)
+        # Shift the collective so that the differential part fits.
+        if hi - lo <= 1.0:
+            shift = (1.0 - hi) if hi > 1.0 else (-lo if lo < 0.0 else 0.0)
+            out = [o + shift for o in out]
+        return [0.0 if t < 0.0 else 1.0 if t > 1.0 else t for t in out]

@@ -39,6 +39,26 @@ SETTLE_S = 1.0
 STARTUP_TIMEOUT_S = 30.0
 """Simulated seconds the episode start may take before the backend gives up."""
 
+ESTIMATORS = ("sensors", "ground_truth")
+"""What the stub autopilot's state estimate comes from (`estimator=` of the envs):
+
+* `sensors` (default, realistic): the stub's sensor-fusion estimator works from the simulated
+  IMU, magnetometer, barometer and GPS (noise included), as PX4's EKF2 does.
+* `ground_truth` (a labelled shortcut for speed, NOT what PX4 sees): the estimate is the
+  simulator's noise-free state. `direct` then skips the sensor simulation and the fusion
+  filter altogether; `stub` requests HIL_STATE_QUATERNION every step as PX4 does for its
+  ground-truth mode (`SimSession(stub_ground_truth=True)`), so both still agree. Not available
+  with `px4` (it always runs EKF2)."""
+
+
+def check_estimator(estimator: str, autopilot: str) -> str:
+    """`estimator` if `autopilot` supports it; ValueError otherwise."""
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
+    if estimator == "ground_truth" and autopilot == "px4":
+        raise ValueError("estimator='ground_truth' needs the stub autopilot (direct or stub); PX4 runs EKF2")
+    return estimator
+
 
 class BackendError(RuntimeError):
     """A backend could not start, reset or fly (the message says which vehicle and why)."""

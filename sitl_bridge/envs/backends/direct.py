@@ -8,6 +8,11 @@ in the same order as the `stub` backend sends them through MAVSDK, so both fly a
 offboard setpoint is refreshed at MAVSDK's 20 Hz (in simulated time) so the offboard-loss
 failsafe never fires. The lidar is cast once per `fly`/`reset` (observations need it only then).
 
+Estimator (`estimator=`, see `base.ESTIMATORS`): `sensors` (default) samples every vehicle's
+`SensorSuite` each step for the stub's sensor-fusion estimator; `ground_truth` builds only the
+ground-truth frame (`SensorSuite.truth_frame`: no sensor simulation, no noise) for the stub's
+`GroundTruthEstimator`, the same estimator the `stub` backend then runs on HIL_STATE_QUATERNION.
+
 Reset: in place, the same steps as `SimSession.reset` for in-process stubs: the simulation
 re-spawned from the episode's seed (time 0), sensor noise re-seeded (`sensor_seed`), every
 autopilot rebooted with `StubAutopilot.reset` (the short warm alignment; the autopilots are
@@ -30,6 +35,7 @@ from sitl_bridge.envs.backends.base import (
     TAKEOFF_TOLERANCE_M,
     BackendError,
     Snapshot,
+    check_estimator,
 )
 from sitl_bridge.physics import MotorCommand, Simulation
 from sitl_bridge.sensors import SensorSuite
@@ -50,7 +56,9 @@ class DirectBackend:
     name = "direct"
 
     def __init__(self, world: World, *, start_altitude_m: float, seed: int = 0,
-                 gui: bool = False) -> None:
+                 gui: bool = False, estimator: str = "sensors") -> None:
+        self.estimator = check_estimator(estimator, "direct")
+        ground_truth = estimator == "ground_truth"
         self.world = world
         self.num_drones = world.num_vehicles
         self.start_altitude_m = float(start_altitude_m)
@@ -58,7 +66,10 @@ class DirectBackend:
         self.lidar = Lidar(self.sim, [v.lidar for v in world.vehicles])
         self.sensors = [SensorSuite(world.home, seed=sensor_seed(seed, i), step_us=self.sim.step_us)
                         for i in range(self.num_drones)]
-        self.autopilots = [StubAutopilot(i, self._params()) for i in range(self.num_drones)]
+        self.autopilots = [StubAutopilot(i, self._params(), ground_truth_estimate=ground_truth)
+                           for i in range(self.num_drones)]
+        # per vehicle, what turns its state into the autopilot's input frame
+        self._frame_of = [s.truth_frame if ground_truth else s.sample for s in self.sensors]
         self._collided = [False] * self.num_drones
         self._velocities: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)] * self.num_drones
         self._refresh_steps = max(1, round(SETPOINT_PERIOD_S * 1e6 / self.sim.step_us))
@@ -105,7 +116,7 @@ class DirectBackend:
 
     def run_steps(self, steps: int, until: Callable[[], bool] | None = None) -> int:
         """Step `steps` times (or until `until()` holds after a step); returns steps taken."""
-        sim, sensors, autopilots = self.sim, self.sensors, self.autopilots
+        sim, frame_of, autopilots = self.sim, self._frame_of, self.autopilots
         n = self.num_drones
         refresh = self._refresh_steps
         for k in range(steps):
@@ -114,12 +125,13 @@ class DirectBackend:
                     ap.set_velocity_setpoint_ned(v)
             time_us = sim.time_us
             commands: list[MotorCommand] = [
-                autopilots[i].update(sensors[i].sample(sim.state(i), time_us)) for i in range(n)
+                autopilots[i].update(frame_of[i](sim.state(i), time_us)) for i in range(n)
             ]
             sim.step(commands)
             self.steps += 1
-            for c in sim.collisions():
-                self._collided[c.vehicle] = True
+            if sim.has_collisions:  # cheap test first: collisions() copies its list
+                for c in sim.collisions():
+                    self._collided[c.vehicle] = True
             if until is not None and until():
                 return k + 1
         return steps

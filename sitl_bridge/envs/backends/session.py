@@ -40,6 +40,7 @@ from sitl_bridge.envs.backends.base import (
     TAKEOFF_TOLERANCE_M,
     BackendError,
     Snapshot,
+    check_estimator,
 )
 from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.session import SessionError, SimSession
@@ -53,9 +54,10 @@ class SessionBackend:
 
     def __init__(self, world: World, *, autopilot: str, start_altitude_m: float,
                  speed_factor: float = 0.0, instance_base: int = 0,
-                 px4_bin: str | None = None, gui: bool = False) -> None:
+                 px4_bin: str | None = None, gui: bool = False, estimator: str = "sensors") -> None:
         if autopilot not in ("stub", "px4"):
             raise ValueError(f"SessionBackend runs 'stub' or 'px4', got {autopilot!r}")
+        self.estimator = check_estimator(estimator, autopilot)
         self.name = autopilot
         self.world = world
         self.num_drones = world.num_vehicles
@@ -64,7 +66,8 @@ class SessionBackend:
         self._run_dir = tempfile.TemporaryDirectory(prefix="sitl-bridge-env-") if autopilot == "px4" else None
         self._options = dict(autopilot=autopilot, speed_factor=speed_factor,
                              instance_base=instance_base, px4_bin=px4_bin, gui=gui,
-                             run_dir=self._run_dir.name if self._run_dir is not None else None)
+                             run_dir=self._run_dir.name if self._run_dir is not None else None,
+                             stub_ground_truth=estimator == "ground_truth")
         self.session: SimSession | None = None
         self.fleet: Fleet | None = None
         self.lidar: Lidar | None = None
