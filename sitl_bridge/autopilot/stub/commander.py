@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 
 _NAN = float("nan")
 _NAN3 = (_NAN, _NAN, _NAN)
+_OFFBOARD_MAIN = OFFBOARD[0]
 
 
 class Output(Enum):
@@ -307,7 +308,8 @@ class Commander:
             self._set_home(e)
         if not self.armed:
             return Output.OFF, self._last_setpoint
-        self._offboard_failsafe()
+        if self.main_mode == _OFFBOARD_MAIN:  # the failsafe only concerns OFFBOARD (one call less otherwise)
+            self._offboard_failsafe()
         sp = self._setpoint(e)
         self._last_setpoint = sp
         if self.landed:

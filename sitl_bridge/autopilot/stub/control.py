@@ -301,18 +301,19 @@ class RateControl:
         out = (kp_x * ex + integ[0] - kd_x * rd[0], kp_y * ey + integ[1] - kd_y * rd[1],
                kp_z * ez + integ[2] - kd_z * rd[2])
         if not landed and not saturated:
+            # per axis, written out (every step): PX4 shrinks the integration for large
+            # errors (i_factor), then clamps to the integrator limit
             lim_x, lim_y, lim_z = self._INTEGRATOR_LIMIT
-            integ[0] = _integrate(integ[0], ki_x * ex * dt_s, ex, lim_x)
-            integ[1] = _integrate(integ[1], ki_y * ey * dt_s, ey, lim_y)
-            integ[2] = _integrate(integ[2], ki_z * ez * dt_s, ez, lim_z)
+            f = 1.0 - (ex / _I_FACTOR_RATE_RAD_S) ** 2
+            v = integ[0] + (f if f > 0.0 else 0.0) * (ki_x * ex * dt_s)
+            integ[0] = -lim_x if v < -lim_x else lim_x if v > lim_x else v
+            f = 1.0 - (ey / _I_FACTOR_RATE_RAD_S) ** 2
+            v = integ[1] + (f if f > 0.0 else 0.0) * (ki_y * ey * dt_s)
+            integ[1] = -lim_y if v < -lim_y else lim_y if v > lim_y else v
+            f = 1.0 - (ez / _I_FACTOR_RATE_RAD_S) ** 2
+            v = integ[2] + (f if f > 0.0 else 0.0) * (ki_z * ez * dt_s)
+            integ[2] = -lim_z if v < -lim_z else lim_z if v > lim_z else v
         return out
 
 
 _I_FACTOR_RATE_RAD_S = math.radians(400.0)
-
-
-def _integrate(integral: float, increment: float, error: float, limit: float) -> float:
-    """One integrator step; PX4 shrinks the integration for large errors (i_factor)."""
-    i_factor = 1.0 - (error / _I_FACTOR_RATE_RAD_S) ** 2
-    value = integral + (i_factor if i_factor > 0.0 else 0.0) * increment
-    return -limit if value < -limit else limit if value > limit else value

@@ -142,7 +142,8 @@ class GroundTruthEstimator:
         if gps is not None:
             e.gps_fix_type, e.gps_satellites = int(gps.fix_type), int(gps.satellites)
             e.gps_eph_cm, e.gps_epv_cm = int(gps.eph_cm), int(gps.epv_cm)
-        else:
+        elif e.gps_fix_type < 3 or e.gps_satellites < 10 or e.gps_eph_cm > 100 or e.gps_epv_cm > 100:
+            # no GPS in this frame: at least a good 3D fix (tested first, it holds after once)
             e.gps_fix_type = max(e.gps_fix_type, 3)
             e.gps_satellites = max(e.gps_satellites, 10)
             e.gps_eph_cm, e.gps_epv_cm = min(e.gps_eph_cm, 100), min(e.gps_epv_cm, 100)
