@@ -15,8 +15,8 @@ from sitl_bridge.rl.episode_log import read_records
 from sitl_bridge.rl.policy import policy_from_checkpoint
 
 REPO = Path(__file__).resolve().parent.parent
-EMPTY = str(REPO / "worlds" / "empty.yaml")          # 54 inputs
-RANDOM_GOAL = str(REPO / "worlds" / "random_goal.yaml")  # 54 inputs: transfer from E works
+EMPTY = str(REPO / "worlds" / "empty.yaml")          # 51 inputs
+RANDOM_GOAL = str(REPO / "worlds" / "random_goal.yaml")  # 51 inputs: transfer from E works
 WINDOW = str(REPO / "worlds" / "window.yaml")        # 65 inputs
 TWO_DRONES = str(REPO / "worlds" / "two_drones_empty.yaml")
 TINY = ["--batch-size", "16", "--layers", "2", "--hidden-units", "16", "--eval-every", "0",
@@ -71,8 +71,8 @@ def test_eval_json_and_policy_from_checkpoint(empty_run: Path, capsys: pytest.Ca
     assert result["episodes"] == 2 and 0.0 <= result["success_rate"] <= 1.0
     assert result["success_rate"] + result["crash_rate"] + result["out_rate"] + result["timeout_rate"] == pytest.approx(1.0)
     policy = policy_from_checkpoint(empty_run)
-    assert policy(np.zeros(54, dtype=np.float32)) in range(8)
-    with pytest.raises(ValueError, match="54 observation values, got 5"):
+    assert policy(np.zeros(51, dtype=np.float32)) in range(8)
+    with pytest.raises(ValueError, match="51 observation values, got 5"):
         policy(np.zeros(5))
 
 
@@ -96,7 +96,7 @@ def test_init_from_with_wrong_shapes_fails_clearly(empty_run: Path, tmp_path: Pa
     code = cli("train", WINDOW, "--episodes", "1", "--out", str(tmp_path), "--init-from", str(empty_run), *TINY)
     assert code == 2
     err = capsys.readouterr().err
-    assert "54 inputs" in err and "65 inputs" in err and "8 outputs" in err
+    assert "51 inputs" in err and "65 inputs" in err and "8 outputs" in err
     assert not list(tmp_path.iterdir())  # nothing half-created
 
 
