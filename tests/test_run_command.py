@@ -173,3 +173,41 @@ def test_external_mavsdk_script_flies_a_free_running_simulator() -> None:
             process.kill()
             process.wait()
     assert ports_released(base)
+
+
+def test_trained_policy_flies_through_mavsdk(tmp_path: Path) -> None:
+    """`run --policy`: a trained network flies its scenario through the stub's MAVLink API."""
+    world = str(Path(__file__).resolve().parent.parent / "worlds" / "empty.yaml")
+    train = subprocess.run(
+        [sys.executable, "-m", "sitl_bridge", "train", world, "--episodes", "2", "--out", str(tmp_path),
+         "--batch-size", "16", "--layers", "2", "--hidden-units", "16", "--eval-every", "0",
+         "--eval-episodes", "0", "--no-progress"],
+        capture_output=True, text=True, timeout=240)
+    assert train.returncode == 0, train.stdout + train.stderr
+    (run_dir,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    base = pick_mavlink_instances(1)
+    result = subprocess.run(
+        _command(world, "--policy", str(run_dir), "--episodes", "2", "--speed-factor", "0",
+                 "--instance-base", str(base)),
+        cwd=tmp_path, capture_output=True, text=True, timeout=240)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "episode 0 drone 0:" in result.stdout and "episode 1 drone 0:" in result.stdout
+    assert "(2 episodes)" in result.stdout
+    assert ports_released(base)
+
+
+def test_policy_for_another_scenario_is_a_clear_error(tmp_path: Path) -> None:
+    repo = Path(__file__).resolve().parent.parent
+    train = subprocess.run(
+        [sys.executable, "-m", "sitl_bridge", "train", str(repo / "worlds" / "empty.yaml"), "--episodes", "1",
+         "--out", str(tmp_path), "--batch-size", "16", "--layers", "2", "--hidden-units", "16",
+         "--eval-every", "0", "--eval-episodes", "0", "--no-progress"],
+        capture_output=True, text=True, timeout=240)
+    assert train.returncode == 0, train.stdout + train.stderr
+    (run_dir,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    result = subprocess.run(
+        _command(str(repo / "worlds" / "window.yaml"), "--policy", str(run_dir), "--speed-factor", "0",
+                 "--instance-base", str(pick_mavlink_instances(1))),
+        cwd=tmp_path, capture_output=True, text=True, timeout=240)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr and "observation" in result.stderr

@@ -76,6 +76,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--demo", action="store_true",
                         help="fly the built-in MAVSDK offboard demo with every vehicle, then exit")
     parser.add_argument("--quiet", action="store_true", help="no live status line")
+    parser.add_argument("--policy", default=None, metavar="RUN_DIR_OR_CHECKPOINT",
+                        help="fly this trained policy greedily in the world's scenario, through "
+                             "MAVSDK and the chosen autopilot (stub or px4), then exit")
+    parser.add_argument("--episodes", type=int, default=1, help="episodes to fly with --policy (default 1)")
     parser.set_defaults(func=main)
 
 
@@ -87,6 +91,8 @@ def main(args: argparse.Namespace) -> int:
         print("sitl-bridge run: --duration must be positive", file=sys.stderr)
         return 2
     _interrupt_on_sigterm()
+    if args.policy:
+        return _run_policy(args)
     try:
         session = SimSession(
             args.world or default_world_path(),
@@ -188,4 +194,42 @@ def _run_demo(session: SimSession, args: argparse.Namespace) -> int:
           f"(real-time factor {sim / wall:.1f}x), worst leg error {worst:.2f} m", flush=True)
     if args.duration is not None and session.time_s < args.duration:
         session.run_for(_whole_steps(session, args.duration - session.time_s))
+    return 0
+
+
+def _run_policy(args: argparse.Namespace) -> int:
+    """Fly a trained policy greedily in the scenario's env, whose `stub`/`px4` backend sends
+    every action as a MAVSDK offboard velocity setpoint: the same path a real vehicle takes."""
+    if args.autopilot == "external":
+        print("sitl-bridge run: --policy needs --autopilot stub or px4", file=sys.stderr)
+        return 2
+    # torch and mavsdk are only imported for this mode
+    from sitl_bridge.rl.drones_env import DronesEnv, scenario_env_factory
+    from sitl_bridge.rl.evaluate import summarize
+    from sitl_bridge.rl.policy import policy_from_checkpoint
+    from sitl_bridge.rl.rollout import eval_seeds, rollout
+
+    world = str(args.world or default_world_path())
+    try:
+        policy = policy_from_checkpoint(args.policy)
+        factory = scenario_env_factory(world, args.autopilot, speed_factor=args.speed_factor,
+                                       instance_base=args.instance_base, px4_bin=args.px4_bin, gui=args.gui)
+        env = DronesEnv(factory(args.seed))
+        try:
+            traces = rollout(env, policy, eval_seeds(args.seed, args.episodes))
+        finally:
+            env.close()
+    except KeyboardInterrupt:
+        print("\ninterrupted; shut down cleanly", file=sys.stderr)
+        return 130
+    except (ConfigError, ValueError, FileNotFoundError) as exc:  # wrong world/checkpoint pairing
+        print(f"sitl-bridge run: {exc}", file=sys.stderr)
+        return 2
+    except RUNTIME_FAILURES as exc:
+        print(f"sitl-bridge run: {exc}", file=sys.stderr)
+        return 1
+    for trace in traces:
+        print(f"episode {trace.episode} drone {trace.drone}: {trace.outcome} after {trace.steps} steps, "
+              f"reward {trace.reward:.0f}, actions {' '.join(map(str, trace.actions))}", flush=True)
+    print(summarize(world, args.episodes, traces).summary(), flush=True)
     return 0
