@@ -9,8 +9,22 @@ from __future__ import annotations
 
 import math
 
+# The general quaternion algebra lives in the frames module; these names keep the stub's
+# call sites short. What follows below is specific to the controllers and estimator.
+from sitl_bridge.frames import quat_conjugate_t as quat_conjugate
+from sitl_bridge.frames import quat_from_euler_t as quat_from_euler
+from sitl_bridge.frames import quat_multiply_t as quat_multiply
+from sitl_bridge.frames import quat_rotate_t as quat_rotate
+from sitl_bridge.frames import quat_to_euler_t as quat_to_euler
+
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
+
+__all__ = [
+    "Quat", "Vec3", "clamp", "norm", "quat_conjugate", "quat_conjugate_multiply", "quat_from_euler",
+    "quat_from_two_vectors", "quat_multiply", "quat_normalize", "quat_rotate", "quat_rotate_inverse",
+    "quat_to_euler", "quat_yaw", "wrap_pi",
+]
 
 
 def norm(v: Vec3) -> float:
@@ -28,18 +42,6 @@ def wrap_pi(angle_rad: float) -> float:
     return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def quat_multiply(a: Quat, b: Quat) -> Quat:
-    """Hamilton product a * b."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
 def quat_conjugate_multiply(a: Quat, b: Quat) -> Quat:
     """conjugate(a) * b (the rotation from a to b) without building the conjugate."""
     aw, ax, ay, az = a
@@ -52,32 +54,12 @@ def quat_conjugate_multiply(a: Quat, b: Quat) -> Quat:
     )
 
 
-def quat_conjugate(q: Quat) -> Quat:
-    """Inverse of a unit quaternion."""
-    return (q[0], -q[1], -q[2], -q[3])
-
-
 def quat_normalize(q: Quat) -> Quat:
     """Unit quaternion with positive w (the shorter of the two equivalent rotations)."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if q[0] < 0.0:
         n = -n
     return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-
-
-def quat_rotate(q: Quat, v: Vec3) -> Vec3:
-    """Rotate v by q (body -> world when q is the attitude)."""
-    w, x, y, z = q
-    vx, vy, vz = v
-    # v + 2w(u x v) + 2u x (u x v), u = (x, y, z)
-    tx = 2.0 * (y * vz - z * vy)
-    ty = 2.0 * (z * vx - x * vz)
-    tz = 2.0 * (x * vy - y * vx)
-    return (
-        vx + w * tx + y * tz - z * ty,
-        vy + w * ty + z * tx - x * tz,
-        vz + w * tz + x * ty - y * tx,
-    )
 
 
 def quat_rotate_inverse(q: Quat, v: Vec3) -> Vec3:
@@ -92,28 +74,6 @@ def quat_rotate_inverse(q: Quat, v: Vec3) -> Vec3:
         vx + w * tx - y * tz + z * ty,
         vy + w * ty - z * tx + x * tz,
         vz + w * tz - x * ty + y * tx,
-    )
-
-
-def quat_to_euler(q: Quat) -> Vec3:
-    """(roll, pitch, yaw) in rad, ZYX convention as PX4 reports them."""
-    w, x, y, z = q
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = math.asin(clamp(2.0 * (w * y - z * x), -1.0, 1.0))
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return (roll, pitch, yaw)
-
-
-def quat_from_euler(roll: float, pitch: float, yaw: float) -> Quat:
-    """Quaternion from ZYX Euler angles in rad."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return (
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
     )
 
 
