@@ -5,6 +5,7 @@ Skipped without PX4_BIN (the `px4_bin` fixture)."""
 from __future__ import annotations
 
 import pytest
+from test_run_command import wait_until_serving
 from test_session import ports_released
 
 from sitl_bridge.client import Fleet, OffboardClient
@@ -82,7 +83,6 @@ def test_ctrl_c_stops_px4_and_frees_its_ports(px4_bin: str) -> None:
     import signal
     import subprocess
     import sys
-    import time
 
     instance = _free_px4_instance()
     process = subprocess.Popen(
@@ -91,14 +91,7 @@ def test_ctrl_c_stops_px4_and_frees_its_ports(px4_bin: str) -> None:
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     output = []
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            line = process.stdout.readline()
-            if not line:
-                break
-            output.append(line)
-            if line.startswith("t=") and "t=    0.00" not in line:
-                break
+        output = wait_until_serving(process, 120)
         assert _px4_pids(px4_bin, instance), "".join(output)
         process.send_signal(signal.SIGINT)
         rest, _ = process.communicate(timeout=60)

@@ -35,6 +35,21 @@ def _session_processes(sid: int) -> list[int]:
     return pids
 
 
+def wait_until_serving(process: subprocess.Popen, timeout_s: float) -> list[str]:
+    """Read `sitl-bridge run` output until a status line shows simulated time advancing (or
+    the output ends / `timeout_s` passes); returns the lines read."""
+    output: list[str] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = process.stdout.readline()
+        if not line:
+            break
+        output.append(line)
+        if line.startswith("t=") and "t=    0.00" not in line:
+            break
+    return output
+
+
 def test_speed_factor_argument() -> None:
     assert speed_factor_arg("max") == 0.0
     assert speed_factor_arg("0") == 0.0
@@ -91,15 +106,7 @@ def test_ctrl_c_leaves_no_process_or_port_behind(stub_process: bool, sig: int) -
                                text=True, start_new_session=True)
     output = []
     try:
-        # Wait until it serves: a status line shows simulated time advancing.
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            line = process.stdout.readline()
-            if not line:
-                break
-            output.append(line)
-            if line.startswith("t=") and "t=    0.00" not in line:
-                break
+        output = wait_until_serving(process, 60)
         assert any(line.startswith("t=") for line in output), "".join(output)
         process.send_signal(sig)
         rest, _ = process.communicate(timeout=30)
