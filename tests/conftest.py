@@ -1,45 +1,24 @@
 """Shared test fixtures.
 
 Tests that open sockets take a vehicle instance number from `free_instance` so that parallel
-test runs (and a developer's own `sitl-bridge run`) never fight over ports. Instance i uses
-TCP 4560+i (HIL link), UDP 14580+i (autopilot API bind), UDP 14540+i (API client),
-UDP 18570+i (GCS link bind).
+test runs (and a developer's own `sitl-bridge run`) never fight over ports; the ports of
+instance i are those of `sitl_bridge.ports`.
 """
 
 from __future__ import annotations
 
 import os
 import random
-import socket
 
 import pytest
 
-HIL_BASE_PORT = 4560
-API_BIND_BASE_PORT = 14580
-API_CLIENT_BASE_PORT = 14540
-GCS_BIND_BASE_PORT = 18570
-
-
-def _port_free(port: int, kind: int) -> bool:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        # A TCP port left in TIME_WAIT by an earlier test is reusable, as our servers set
-        # SO_REUSEADDR too; without it such a port would look busy.
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
+from sitl_bridge.ports import instance_free
 
 
 def instance_ports_free(instance: int) -> bool:
-    """True when every port vehicle instance `instance` would use is free on 127.0.0.1."""
-    return (
-        _port_free(HIL_BASE_PORT + instance, socket.SOCK_STREAM)
-        and _port_free(API_BIND_BASE_PORT + instance, socket.SOCK_DGRAM)
-        and _port_free(API_CLIENT_BASE_PORT + instance, socket.SOCK_DGRAM)
-        and _port_free(GCS_BIND_BASE_PORT + instance, socket.SOCK_DGRAM)
-    )
+    """True when every port vehicle instance `instance` would use is free on 127.0.0.1
+    (`sitl_bridge.ports`: a TCP port in TIME_WAIT counts as free, as our servers reuse it)."""
+    return instance_free(instance)
 
 
 # The MAVLink system id is 1 + instance and must fit in one byte.

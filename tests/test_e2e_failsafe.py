@@ -13,7 +13,7 @@ from sitl_bridge.session import SimSession
 def test_offboard_loss_triggers_the_failsafe_in_simulated_time() -> None:
     instance = pick_mavlink_instances(1)
     with SimSession("empty", autopilot="stub", speed_factor=0, instance_base=instance) as session:
-        stub = session.stubs[0]
+        stub = session.autopilots.stubs[0]
         with OffboardClient(instance, clock=session) as client:
             client.wait_healthy(timeout_s=30)
             # At F = 0 the wall-clock timeout of px4_params (1 s) is scaled by 30 (see session).

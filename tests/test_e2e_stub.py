@@ -108,13 +108,13 @@ def test_hold_then_land_and_disarm(flight) -> None:
 
 
 def test_stub_processes_get_the_speed_factor_and_parameter_overrides() -> None:
-    """`stub_process=True`: each stub is `sitl-bridge stub -i N`, configured like in-process."""
+    """`autopilot="stub-process"`: each stub is `sitl-bridge stub -i N`, configured like in-process."""
     instance = pick_mavlink_instances(1)
-    with SimSession("empty", autopilot="stub", speed_factor=0, instance_base=instance, stub_process=True,
+    with SimSession("empty", autopilot="stub-process", speed_factor=0, instance_base=instance,
                     params={"MIS_TAKEOFF_ALT": 3.0}) as session, \
             OffboardClient(instance, clock=session) as client:
         assert client.autopilot_type() == "PX4"
         assert client.get_param_float("COM_OF_LOSS_T") == pytest.approx(30.0)
         assert client.get_param_float("MIS_TAKEOFF_ALT") == pytest.approx(3.0)
         client.wait_healthy(timeout_s=30)
-        assert not session.stubs  # nothing in-process
+        assert not session.lockstep.pumps  # nothing in-process

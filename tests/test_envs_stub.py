@@ -63,7 +63,7 @@ def test_direct_and_stub_agree_with_the_ground_truth_estimator(free_instance: in
                     instance_base=free_instance, estimator="ground_truth")
     try:
         got = fly(stub, actions, seed=2)
-        assert all(ap.ground_truth_estimate for ap in stub.backend.session.stubs)
+        assert all(ap.ground_truth_estimate for ap in stub.backend.session.autopilots.stubs)
         assert len(got) == len(expected)
         for step, (a, b) in enumerate(zip(expected, got, strict=True)):
             assert np.linalg.norm(a - b) < 0.1, (step, a, b)

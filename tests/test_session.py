@@ -12,16 +12,12 @@ import time
 
 import pytest
 
+from sitl_bridge.autopilot.modes import mode_name as px4_mode_name
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil.peer import ConstantAutopilot
-from sitl_bridge.session import (
-    SimSession,
-    default_world_path,
-    px4_mode_name,
-    resolve_world,
-    with_vehicle_count,
-)
+from sitl_bridge.session import SimSession
 from sitl_bridge.world.loader import load_world
+from sitl_bridge.world.lookup import default_world_path, resolve_world, with_vehicle_count
 
 
 def ports_released(instance: int) -> bool:
@@ -222,7 +218,7 @@ def test_stub_session_resets_in_place(free_instance: int) -> None:
 
     with SimSession("obstacle", autopilot="stub", speed_factor=0, instance_base=free_instance,
                     seed=1) as session:
-        stub, link = session.stubs[0], session.links[0]
+        stub, link = session.autopilots.stubs[0], session.links[0]
         spawn = session.vehicle_state(0).position_enu_m.copy()
         with session.exclusive():
             _armable_after_s(lambda: stub.arm() is CommandResult.ACCEPTED, session.lockstep.run_for)
@@ -231,13 +227,13 @@ def test_stub_session_resets_in_place(free_instance: int) -> None:
         assert session.vehicle_state(0).position_enu_m[2] > spawn[2] + 1.0
         assert session.take_collisions() == []  # a clean takeoff
         wire_us = link.last_sent_time_usec
-        api_ports = session.vehicles[0].api.ports
+        api_ports = session.autopilots.vehicles[0].api.ports
 
         session.reset(seed=1)
         assert session.time_us == 0 and not session.running and session.seed == 1
         assert session.vehicle_state(0).position_enu_m == pytest.approx(spawn, abs=1e-6)
-        assert session.stubs[0] is stub and not stub.armed and stub.home is None
-        assert session.vehicles[0].api.ports == api_ports  # MAVSDK stays connected
+        assert session.autopilots.stubs[0] is stub and not stub.armed and stub.home is None
+        assert session.autopilots.vehicles[0].api.ports == api_ports  # MAVSDK stays connected
         session.run_for(0.2)
         assert session.time_us == 200_000
         assert link.last_sent_time_usec == wire_us + 50 * session.sim.step_us  # 1 + 49 steps later
@@ -253,7 +249,7 @@ def test_stub_session_reset_draws_the_same_episode_as_a_new_session(free_instanc
     from sitl_bridge.autopilot.stub import CommandResult
 
     def take_off(session: SimSession) -> None:
-        stub = session.stubs[0]
+        stub = session.autopilots.stubs[0]
         with session.exclusive():
             _armable_after_s(lambda: stub.arm() is CommandResult.ACCEPTED, session.lockstep.run_for)
             assert stub.takeoff() is CommandResult.ACCEPTED
@@ -296,14 +292,14 @@ def test_deliver_pending_commands_times_out_and_external_sessions_cannot_reset(f
 
 def test_stub_process_sessions_reset_by_restarting_the_stubs() -> None:
     instance = pick_mavlink_instances(1)
-    with SimSession("empty", autopilot="stub", speed_factor=0, instance_base=instance, stub_process=True,
+    with SimSession("empty", autopilot="stub-process", speed_factor=0, instance_base=instance,
                     connect_timeout_s=30) as session:
         session.run_for(0.5)
         link = session.links[0]
         wire_us = link.last_sent_time_usec
-        old_pid = session._processes[0].pid
+        old_pid = session.autopilots.processes[0].pid
         session.reset(seed=2)
-        assert session.time_us == 0 and session._processes[0].pid != old_pid
+        assert session.time_us == 0 and session.autopilots.processes[0].pid != old_pid
         assert link.connected and link.stats.connections == 2
         session.run_for(0.5)  # the new stub answers in lockstep
         assert session.time_us == 500_000 and link.last_sent_time_usec > wire_us
@@ -324,7 +320,7 @@ def test_px4_sessions_reset_by_restarting_px4(px4_bin: str, tmp_path) -> None:
     with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=0, instance_base=instance,
                     run_dir=tmp_path) as session:
         session.run_for(1.0)
-        link, px4 = session.links[0], session.px4.autopilots[0]
+        link, px4 = session.links[0], session.autopilots.px4.autopilots[0]
         wire_us, old_pid = link.last_sent_time_usec, px4.pid
         session.reset(seed=1)
         assert px4.pid != old_pid and px4.ready and link.stats.connections == 2

@@ -20,7 +20,6 @@ free vehicle instances (full protocol path, `sensors`). It prints per configurat
 from __future__ import annotations
 
 import argparse
-import socket
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl_bridge.envs import make_env, worlds_dir
+from sitl_bridge.ports import instance_free
 
 SCENARIO = "obstacle.yaml"
 CONFIGS = (("direct", "sensors"), ("direct", "ground_truth"), ("stub", "sensors"))
@@ -78,16 +78,7 @@ def _free_instance() -> int:
     """A vehicle instance whose HIL TCP port (4560+i) and API ports are free (MAVLink system
     id 1+i must fit in a byte)."""
     for instance in range(150, 250, 3):
-        ok = True
-        for port, kind in ((4560 + instance, socket.SOCK_STREAM), (14580 + instance, socket.SOCK_DGRAM),
-                           (14540 + instance, socket.SOCK_DGRAM), (18570 + instance, socket.SOCK_DGRAM)):
-            with socket.socket(socket.AF_INET, kind) as s:
-                try:
-                    s.bind(("127.0.0.1", port))
-                except OSError:
-                    ok = False
-                    break
-        if ok:
+        if instance_free(instance):
             return instance
     raise RuntimeError("no free vehicle instance for the stub backend")
 

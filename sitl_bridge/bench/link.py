@@ -77,12 +77,13 @@ class _ReplaySensors:
 def _case(name: str, vehicles: int, seconds: float, *, mode: str) -> dict[str, float]:
     world = load_world(WORLDS / ("empty.yaml" if vehicles == 1 else "two_drones_empty.yaml"))
     sim = Simulation(world)
-    sensors: list[Any] = [SensorSuite(world.home, seed=i) for i in range(vehicles)]
+    step_us = sim.step_us
+    sensors: list[Any] = [SensorSuite(world.home, seed=i, step_us=step_us) for i in range(vehicles)]
     if mode == "link-only":
-        frames = [[s.sample(sim.state(i), k * sim.step_us) for k in range(250)] for i, s in enumerate(sensors)]
+        frames = [[s.sample(sim.state(i), k * step_us) for k in range(250)] for i, s in enumerate(sensors)]
         states = [sim.state(i) for i in range(vehicles)]
         sim.close()
-        sim = _ReplaySim(states, 4000)
+        sim = _ReplaySim(states, step_us)
         sensors = [_ReplaySensors(f) for f in frames]
     links = _free_links(vehicles)
     peers: list[ConstantAutopilot] = []

@@ -16,9 +16,11 @@ from sitl_bridge.physics.bullet import p
 from sitl_bridge.sensors import SensorSuite
 from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.world import World, load_world
+from sitl_bridge.world.clock import DEFAULT_STEP_US
 
 WORLDS_DIR = Path(__file__).resolve().parents[2] / "worlds"
-STEP_US = 4000
+STEP_US = DEFAULT_STEP_US
+"""The benchmark's step: the default world's (250 Hz), whatever the world file says."""
 
 
 def bare_pybullet_rtf(seconds: float) -> tuple[float, float]:

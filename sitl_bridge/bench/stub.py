@@ -9,31 +9,18 @@ with MAVSDK streaming velocity setpoints), each `--seconds` of simulated time in
 from __future__ import annotations
 
 import argparse
-import socket
 import time
 
 from sitl_bridge.client.fleet import Fleet
+from sitl_bridge.ports import instance_free
 from sitl_bridge.session import SimSession, default_world_path
-
-_PORT_OFFSETS = ((4560, socket.SOCK_STREAM), (14580, socket.SOCK_DGRAM),
-                 (14540, socket.SOCK_DGRAM), (18570, socket.SOCK_DGRAM))
-
-
-def _instance_free(instance: int) -> bool:
-    for base, kind in _PORT_OFFSETS:
-        with socket.socket(socket.AF_INET, kind) as sock:
-            try:
-                sock.bind(("127.0.0.1", base + instance))
-            except OSError:
-                return False
-    return True
 
 
 def free_instance_base(count: int, start: int = 200) -> int:
     """First instance i >= start with instances i..i+count-1 all free (benches stay off the
     low instances users run; MAVLink system ids 1 + i must stay below 256)."""
     for first in range(start, 255 - count):
-        if all(_instance_free(first + k) for k in range(count)):
+        if all(instance_free(first + k) for k in range(count)):
             return first
     raise RuntimeError("no free vehicle instances for the benchmark")
 

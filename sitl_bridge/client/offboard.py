@@ -32,11 +32,10 @@ from mavsdk.plugins.telemetry import FlightMode, LandedState, Telemetry
 
 from sitl_bridge.client.actions import ACTION_DURATION_S, ACTION_SPEED_M_S, action_velocity_ned
 from sitl_bridge.client.mavsdk_log import route_mavsdk_logs
+from sitl_bridge.ports import API_CLIENT_BASE_PORT
 
 log = logging.getLogger(__name__)
 
-API_CLIENT_BASE_PORT = 14540
-"""MAVSDK listens on 14540+i for vehicle instance i (PX4's offboard link sends there)."""
 
 T = TypeVar("T")
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from sitl_bridge.commands import add_env_autopilot_argument
 from sitl_bridge.errors import ConfigError
 
 
@@ -16,7 +17,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("file", help="curriculum file (worlds/curricula/*.yaml)")
     parser.add_argument("--out", default="runs", help="output folder (default runs/)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--autopilot", choices=("direct", "stub", "px4"), default="direct")
+    add_env_autopilot_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=main)
 

@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 
+from sitl_bridge.commands import add_env_autopilot_argument
 from sitl_bridge.errors import ConfigError
 
 
@@ -15,7 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("checkpoint", help="checkpoint file or run directory (newest valid checkpoint)")
     parser.add_argument("--world", required=True, help="scenario file to evaluate in")
     parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes (default 100)")
-    parser.add_argument("--autopilot", choices=("direct", "stub", "px4"), default="direct")
+    add_env_autopilot_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     parser.set_defaults(func=main)

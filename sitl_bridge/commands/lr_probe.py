@@ -8,6 +8,7 @@ import argparse
 import json
 import sys
 
+from sitl_bridge.commands import add_env_autopilot_argument
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.rl.config import add_config_arguments, load_train_config, overrides_from_args
 
@@ -16,7 +17,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("lr-probe", help="find a safe starting learning rate (thesis procedure)",
                                    description=__doc__)
     parser.add_argument("world", help="scenario file")
-    parser.add_argument("--autopilot", choices=("direct", "stub", "px4"), default="direct")
+    add_env_autopilot_argument(parser)
     parser.add_argument("--batches", type=int, default=5, help="batches of random experience to collect")
     parser.add_argument("--epochs", type=int, default=100, help="training epochs per rate")
     parser.add_argument("--rates", type=float, nargs="+", help="candidate rates (default 0.1 ... 1e-7)")

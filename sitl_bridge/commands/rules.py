@@ -8,6 +8,7 @@ import argparse
 import json
 import sys
 
+from sitl_bridge.commands import add_env_autopilot_argument
 from sitl_bridge.errors import ConfigError
 
 
@@ -17,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("checkpoint", help="run directory or checkpoint file")
     parser.add_argument("--world", help="scenario file (default: the run's own world)")
     parser.add_argument("--episodes", type=int, default=50, help="randomised greedy episodes (default 50)")
-    parser.add_argument("--autopilot", choices=("direct", "stub", "px4"), default="direct")
+    add_env_autopilot_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of the episodes")
     parser.add_argument("--top", type=int, default=5, help="typical sequences to list")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")

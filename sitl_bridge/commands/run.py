@@ -14,11 +14,13 @@ import signal
 import sys
 import time
 
+from sitl_bridge.autopilot import registry
 from sitl_bridge.autopilot.px4 import Px4Error
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil.errors import HilError
 from sitl_bridge.hil.lockstep import parse_speed_factor
-from sitl_bridge.session import AUTOPILOTS, SessionError, SimSession, default_world_path
+from sitl_bridge.session import SessionError, SimSession, default_world_path
+from sitl_bridge.world.clock import nearest_whole_steps_s
 
 RUNTIME_FAILURES: tuple[type[BaseException], ...] = (SessionError, HilError, Px4Error)
 """Failures reported as one message (exit 1) rather than a traceback."""
@@ -50,12 +52,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("world", nargs="?", default=None,
                         help="world file (default: worlds/empty.yaml of the installation)")
-    parser.add_argument("--autopilot", choices=AUTOPILOTS, default="stub",
-                        help="stub: built-in PX4-compatible stub (default); px4: real PX4 SITL "
-                             "(--px4-bin); external: wait for autopilots on TCP 4560+i")
+    kinds = registry.names(session=True)
+    parser.add_argument("--autopilot", choices=kinds, default="stub",
+                        help="; ".join(f"{k}: {registry.get(k).help}" for k in kinds) + " (default stub)")
     parser.add_argument("--stub-process", action="store_true",
-                        help="run each stub as its own `sitl-bridge stub -i N` process "
-                             "(default: in-process, fastest)")
+                        help="short for --autopilot stub-process")
     parser.add_argument("--px4-bin", default=os.environ.get("PX4_BIN"),
                         help="PX4 SITL binary (bin/px4 of px4_sitl_default; default: $PX4_BIN)")
     parser.add_argument("--px4-rootfs", default=None, help="PX4 ROMFS/etc directory (default: from the build tree)")
@@ -91,9 +92,12 @@ def main(args: argparse.Namespace) -> int:
         print("sitl-bridge run: --duration must be positive", file=sys.stderr)
         return 2
     _interrupt_on_sigterm()
+    if args.stub_process:
+        args.autopilot = "stub-process"
     if args.policy:
         return _run_policy(args)
     try:
+        owns_autopilots = registry.session_kind(args.autopilot).fleet_class().owns_autopilots
         session = SimSession(
             args.world or default_world_path(),
             autopilot=args.autopilot,
@@ -104,10 +108,9 @@ def main(args: argparse.Namespace) -> int:
             px4_rootfs=args.px4_rootfs,
             gui=args.gui,
             num_vehicles=args.vehicles,
-            stub_process=args.stub_process,
             run_dir=args.run_dir,
-            # external: wait like Gazebo for autopilots started by hand, however long it takes
-            connect_timeout_s=None if args.autopilot == "external" else 60.0,
+            # autopilots started by hand: wait like Gazebo, however long it takes
+            connect_timeout_s=60.0 if owns_autopilots else None,
         )
     except ConfigError as exc:
         print(f"sitl-bridge run: {exc}", file=sys.stderr)
@@ -134,19 +137,18 @@ def _print_banner(session: SimSession) -> None:
     speed = "max" if session.speed_factor == 0 else f"{session.speed_factor:g}x"
     print(f"world {session.world.name}: {session.num_vehicles} vehicle(s), autopilot "
           f"{session.autopilot}, speed {speed}", flush=True)
-    for i, url in zip(session.instances, session.api_urls, strict=True):
-        print(f"  vehicle {i}: HIL tcp://127.0.0.1:{4560 + i}, MAVSDK {url} "
-              f"(API from udp {14580 + i}), GCS udp {18570 + i} -> 14550", flush=True)
-    if session.autopilot == "external":
-        print("waiting for autopilots to connect on the HIL ports (e.g. `sitl-bridge stub -i N`, "
-              "or PX4 SITL started with PX4_SIM_MODEL=gazebo-classic_iris)", flush=True)
+    for k, instance in enumerate(session.instances):
+        print(f"  vehicle {instance}: {session.ports(k).describe(session.host)}", flush=True)
+    note = session.autopilots.describe()
+    if note:
+        print(note, flush=True)
 
 
 def _serve(session: SimSession, args: argparse.Namespace) -> int:
     """Run until `--duration` simulated seconds (free-running: until Ctrl-C), printing status."""
     tty = sys.stdout.isatty()
     if args.duration is not None:
-        session.run_for(_whole_steps(session, args.duration), wait=False)
+        session.run_for(nearest_whole_steps_s(args.duration, session.step_us), wait=False)
     else:
         session.resume()
     while True:
@@ -165,12 +167,6 @@ def _serve(session: SimSession, args: argparse.Namespace) -> int:
     print(f"done: {session.time_s:.2f} s simulated, real-time factor "
           f"{session.overall_real_time_factor:.1f}x", flush=True)
     return 0
-
-
-def _whole_steps(session: SimSession, seconds: float) -> float:
-    """`seconds` rounded down to whole physics steps (run_for is exact)."""
-    step_us = round(session.step_s * 1e6)
-    return (round(seconds * 1e6) // step_us) * step_us / 1e6
 
 
 def _run_demo(session: SimSession, args: argparse.Namespace) -> int:
@@ -193,15 +189,16 @@ def _run_demo(session: SimSession, args: argparse.Namespace) -> int:
     print(f"demo done: {sim:.1f} s simulated in {wall:.2f} s wall "
           f"(real-time factor {sim / wall:.1f}x), worst leg error {worst:.2f} m", flush=True)
     if args.duration is not None and session.time_s < args.duration:
-        session.run_for(_whole_steps(session, args.duration - session.time_s))
+        session.run_for(nearest_whole_steps_s(args.duration - session.time_s, session.step_us))
     return 0
 
 
 def _run_policy(args: argparse.Namespace) -> int:
     """Fly a trained policy greedily in the scenario's env, whose `stub`/`px4` backend sends
     every action as a MAVSDK offboard velocity setpoint: the same path a real vehicle takes."""
-    if args.autopilot == "external":
-        print("sitl-bridge run: --policy needs --autopilot stub or px4", file=sys.stderr)
+    if args.autopilot not in registry.names(session=True, env=True):
+        print(f"sitl-bridge run: --policy needs --autopilot "
+              f"{' or '.join(registry.names(session=True, env=True))}", file=sys.stderr)
         return 2
     # torch and mavsdk are only imported for this mode
     from sitl_bridge.rl.drones_env import DronesEnv, scenario_env_factory

@@ -11,21 +11,18 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
+from sitl_bridge.commands import add_env_autopilot_argument
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.rl.config import add_config_arguments, load_train_config, overrides_from_args
 
 if TYPE_CHECKING:
     from sitl_bridge.rl.trainer import Trainer
 
-AUTOPILOTS = ("direct", "stub", "px4")
-
-
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("train", help="train a DQN agent on a scenario (resumable)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("world", nargs="?", help="scenario file (worlds/*.yaml); not needed with --resume")
-    parser.add_argument("--autopilot", choices=AUTOPILOTS, default="direct",
-                        help="environment backend (direct: in-process, fastest)")
+    add_env_autopilot_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="run seed (network, exploration, episodes)")
     parser.add_argument("--out", default="runs", help="folder for the run directory (default runs/)")
     parser.add_argument("--resume", metavar="RUN_DIR", help="continue this run from its newest good checkpoint")

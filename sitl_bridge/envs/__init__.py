@@ -16,18 +16,14 @@ directory (`$SITL_BRIDGE_WORLDS`, else the `worlds/` folder of the source tree).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 
+from sitl_bridge.autopilot import registry
 from sitl_bridge.data_paths import worlds_dir
-from sitl_bridge.envs.backends import (
-    AUTOPILOTS,
-    ESTIMATORS,
-    Backend,
-    BackendError,
-    Snapshot,
-    make_backend,
-)
+from sitl_bridge.envs.backends import Backend, BackendError, Snapshot, make_backend
+from sitl_bridge.envs.options import ESTIMATORS, EnvOptions
 from sitl_bridge.envs.parallel import SitlParallelEnv
 from sitl_bridge.envs.runner import OUTCOMES
 from sitl_bridge.envs.scenario import Scenario, load_scenario
@@ -57,26 +53,28 @@ def scenario_path(scenario: str | Path) -> Path:
     return worlds_dir() / name if name else Path(scenario)
 
 
-def make_env(scenario: str | Path, *, autopilot: str = "direct", speed_factor: float = 0.0,
-             seed: int | None = None, drone: int = 0, instance_base: int = 0,
-             px4_bin: str | None = None, gui: bool = False, estimator: str = "sensors") -> SitlEnv:
+def make_env(scenario: str | Path, *, drone: int = 0, options: EnvOptions | None = None,
+             **option_values: Any) -> SitlEnv:
     """A single-drone Gymnasium env for a scenario file or registered id (see `SitlEnv`).
 
+    The keyword arguments are `EnvOptions` fields (`autopilot="direct"`, `speed_factor`,
+    `seed`, `instance_base`, `px4_bin`, `gui`, `estimator`), or pass `options=` whole.
     `estimator="ground_truth"` is the labelled speed shortcut (no sensor simulation or fusion
     in `direct`); the default `"sensors"` is the realistic one (see `ESTIMATORS`)."""
-    return SitlEnv(scenario_path(scenario), autopilot=autopilot, speed_factor=speed_factor,
-                   seed=seed, drone=drone, instance_base=instance_base, px4_bin=px4_bin, gui=gui,
-                   estimator=estimator)
+    return SitlEnv(scenario_path(scenario), drone=drone, options=EnvOptions.of(options, **option_values))
 
 
-def make_parallel_env(scenario: str | Path, *, autopilot: str = "direct",
-                      speed_factor: float = 0.0, seed: int | None = None,
-                      instance_base: int = 0, px4_bin: str | None = None,
-                      gui: bool = False, estimator: str = "sensors") -> SitlParallelEnv:
-    """A PettingZoo ParallelEnv for a scenario file or id (see `SitlParallelEnv`)."""
-    return SitlParallelEnv(scenario_path(scenario), autopilot=autopilot,
-                           speed_factor=speed_factor, seed=seed, instance_base=instance_base,
-                           px4_bin=px4_bin, gui=gui, estimator=estimator)
+def make_parallel_env(scenario: str | Path, *, options: EnvOptions | None = None,
+                      **option_values: Any) -> SitlParallelEnv:
+    """A PettingZoo ParallelEnv for a scenario file or id (see `SitlParallelEnv`); options
+    as for `make_env`."""
+    return SitlParallelEnv(scenario_path(scenario), options=EnvOptions.of(options, **option_values))
+
+
+def __getattr__(name: str) -> Any:
+    if name == "AUTOPILOTS":  # the kinds envs run on, as registered now
+        return registry.names(env=True)
+    raise AttributeError(name)
 
 
 def _register() -> None:
@@ -90,6 +88,6 @@ _register()
 
 __all__ = [
     "AUTOPILOTS", "ESTIMATORS", "OUTCOMES", "PARALLEL_ENVS", "SINGLE_ENVS", "Backend", "BackendError",
-    "Scenario", "SitlEnv", "SitlParallelEnv", "Snapshot", "load_scenario", "make_backend",
+    "EnvOptions", "Scenario", "SitlEnv", "SitlParallelEnv", "Snapshot", "load_scenario", "make_backend",
     "make_env", "make_parallel_env", "scenario_path", "worlds_dir",
 ]

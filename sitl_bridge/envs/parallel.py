@@ -11,9 +11,9 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from sitl_bridge.client.actions import NUM_ACTIONS
-from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend
 from sitl_bridge.envs.manual import describe
+from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.envs.runner import EpisodeRunner
 from sitl_bridge.envs.scenario import Scenario, load_scenario
 from sitl_bridge.envs.single import observation_space
@@ -48,23 +48,18 @@ class SitlParallelEnv(ParallelEnv):
 
     metadata = {"render_modes": [], "name": "sitl_bridge_parallel_v0"}
 
-    def __init__(self, scenario: str | Path | Scenario, *, autopilot: str = "direct",
-                 speed_factor: float = 0.0, seed: int | None = None, instance_base: int = 0,
-                 px4_bin: str | None = None, gui: bool = False,
-                 backend: Backend | None = None, estimator: str = "sensors") -> None:
+    def __init__(self, scenario: str | Path | Scenario, *, backend: Backend | None = None,
+                 options: EnvOptions | None = None, **option_values: Any) -> None:
+        self.options = EnvOptions.of(options, **option_values)  # autopilot=, speed_factor=, seed=, ...
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
-        self.backend = backend or make_backend(
-            autopilot, self.scenario.world, start_altitude_m=self.scenario.task.start_altitude_m,
-            speed_factor=speed_factor, seed=0 if seed is None else seed,
-            instance_base=instance_base, px4_bin=px4_bin, gui=gui, estimator=estimator)
-        self.runner = EpisodeRunner(self.scenario, self.backend)
+        self.runner = EpisodeRunner.open(self.scenario, self.options, backend)
+        self.backend = self.runner.backend
         self.possible_agents = [v.name for v in self.scenario.world.vehicles]
         self.agents: list[str] = []
         self._index = {name: i for i, name in enumerate(self.possible_agents)}
         self._observation_space = observation_space(self.scenario)
         self._action_space = spaces.Discrete(NUM_ACTIONS)
-        self._rng = np.random.default_rng(seed)
-        self._closed = False
+        self._rng = np.random.default_rng(self.options.seed)
 
     @functools.cache  # noqa: B019 - PettingZoo's idiom: one space per agent
     def observation_space(self, agent: str) -> spaces.Box:
@@ -111,6 +106,4 @@ class SitlParallelEnv(ParallelEnv):
         return describe(self.scenario)
 
     def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self.backend.close()
+        self.runner.close()

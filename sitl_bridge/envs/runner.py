@@ -15,7 +15,9 @@ import numpy as np
 
 from sitl_bridge.client.actions import Action
 from sitl_bridge.envs.actions import action_velocity
+from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend, Snapshot
+from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.envs.scenario import Scenario
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.frames import quat_to_euler
@@ -64,6 +66,7 @@ class EpisodeRunner:
     def __init__(self, scenario: Scenario, backend: Backend) -> None:
         self.scenario = scenario
         self.backend = backend
+        self._closed = False
         self.num_drones = scenario.num_drones
         self.step_count = 0
         self.done = [False] * self.num_drones
@@ -73,6 +76,19 @@ class EpisodeRunner:
         self._goals: list[np.ndarray] = []
         self._priorities = np.ones(self.num_drones)
         self._last: list[DroneResult] = []
+
+    @classmethod
+    def open(cls, scenario: Scenario, options: EnvOptions, backend: Backend | None = None) -> EpisodeRunner:
+        """A runner on `backend`, or on the backend `options` names (built for `scenario`)."""
+        if backend is None:
+            backend = make_backend(scenario.world, options, start_altitude_m=scenario.task.start_altitude_m)
+        return cls(scenario, backend)
+
+    def close(self) -> None:
+        """Close the backend (once; later calls do nothing)."""
+        if not self._closed:
+            self._closed = True
+            self.backend.close()
 
     # -- episode ------------------------------------------------------------------------
     def reset(self, seed: int | None = None) -> list[DroneResult]:

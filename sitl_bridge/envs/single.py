@@ -10,9 +10,9 @@ import numpy as np
 from gymnasium import spaces
 
 from sitl_bridge.client.actions import NUM_ACTIONS
-from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend
 from sitl_bridge.envs.manual import describe
+from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.envs.runner import EpisodeRunner
 from sitl_bridge.envs.scenario import Scenario, load_scenario
 
@@ -92,7 +92,8 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
                               seed=None, drone=0, instance_base=0, px4_bin=None)
     gymnasium.make("sitl_bridge/RandomGoal-v0", autopilot="stub")
     ```
-    `autopilot`: `direct` (stub controller + physics in-process, no sockets: the fast path for
+    The keyword arguments are the fields of `sitl_bridge.envs.EnvOptions` (or pass `options=`
+    whole). `autopilot`: `direct` (stub controller + physics in-process, no sockets: the fast path for
     training), `stub` (full protocol path: HIL link, stub autopilot, MAVLink, MAVSDK) or `px4`
     (real PX4 SITL from `px4_bin` / `PX4_BIN`). `speed_factor`: simulated/wall time pacing for
     `stub`/`px4` (0 = as fast as possible). `seed`: seeds the first `reset()` without a seed.
@@ -108,23 +109,18 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
 
     metadata = {"render_modes": []}
 
-    def __init__(self, scenario: str | Path | Scenario, *, autopilot: str = "direct",
-                 speed_factor: float = 0.0, seed: int | None = None, drone: int = 0,
-                 instance_base: int = 0, px4_bin: str | None = None, gui: bool = False,
-                 backend: Backend | None = None, estimator: str = "sensors") -> None:
+    def __init__(self, scenario: str | Path | Scenario, *, drone: int = 0, backend: Backend | None = None,
+                 options: EnvOptions | None = None, **option_values: Any) -> None:
+        self.options = EnvOptions.of(options, **option_values)  # autopilot=, speed_factor=, seed=, ...
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         if not 0 <= drone < self.scenario.num_drones:
             raise ValueError(f"drone must be in 0..{self.scenario.num_drones - 1}, got {drone}")
         self.drone = drone
-        self.backend = backend or make_backend(
-            autopilot, self.scenario.world, start_altitude_m=self.scenario.task.start_altitude_m,
-            speed_factor=speed_factor, seed=0 if seed is None else seed,
-            instance_base=instance_base, px4_bin=px4_bin, gui=gui, estimator=estimator)
-        self.runner = EpisodeRunner(self.scenario, self.backend)
+        self.runner = EpisodeRunner.open(self.scenario, self.options, backend)
+        self.backend = self.runner.backend
         self.action_space = spaces.Discrete(NUM_ACTIONS)
         self.observation_space = observation_space(self.scenario)
-        self._first_seed = seed
-        self._closed = False
+        self._first_seed = self.options.seed
 
     def reset(self, *, seed: int | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -148,6 +144,4 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
         return describe(self.scenario)
 
     def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self.backend.close()
+        self.runner.close()

@@ -29,10 +29,12 @@ from typing import Any
 from sitl_bridge import mavlink
 from sitl_bridge.hil.errors import HilError, LinkClosed, LockstepTimeout
 from sitl_bridge.physics.simulation import MotorCommand
+from sitl_bridge.ports import HIL_BASE_PORT
+from sitl_bridge.world.clock import DEFAULT_STEP_US
 
 log = logging.getLogger(__name__)
 
-DEFAULT_BASE_PORT = 4560
+DEFAULT_BASE_PORT = HIL_BASE_PORT
 
 # HIL_SENSOR fields_updated groups: PX4 reads a group only when all its bits are set
 # (SimulatorMavlink.hpp SensorSource).
@@ -149,7 +151,7 @@ class HilLink:
         host: str = "127.0.0.1",
         base_port: int = DEFAULT_BASE_PORT,
         *,
-        step_us: int = 4000,
+        step_us: int = DEFAULT_STEP_US,
         state_interval_us: int = INTERVAL_DEFAULT,
         system_id: int = 1,
         component_id: int = 200,

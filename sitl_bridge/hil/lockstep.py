@@ -32,6 +32,7 @@ from typing import Any
 
 from sitl_bridge.hil.errors import LockstepTimeout
 from sitl_bridge.hil.link import HilLink
+from sitl_bridge.world.clock import whole_steps
 
 log = logging.getLogger(__name__)
 
@@ -208,17 +209,11 @@ class Lockstep:
 
     def steps_for(self, seconds: float) -> int:
         """The number of steps in `seconds`; ValueError unless it is a whole number."""
-        step_us = self.sim.step_us
-        total_us = round(seconds * 1_000_000)
-        if total_us < 0 or total_us % step_us:
-            raise ValueError(
-                f"{seconds} s is not a whole number of {step_us} us steps"
-            )
-        return total_us // step_us
+        return whole_steps(seconds, self.sim.step_us)
 
     def steps_for_rounded(self, seconds: float) -> int:
         """The number of whole steps nearest to `seconds`."""
-        return max(0, round(seconds * 1_000_000 / self.sim.step_us))
+        return whole_steps(seconds, self.sim.step_us, exact=False)
 
     def hold(self) -> None:
         """End the running segment: nothing moves until the next step. (PX4 is frozen in

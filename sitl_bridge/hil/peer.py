@@ -17,6 +17,7 @@ import threading
 import time
 
 from sitl_bridge import mavlink
+from sitl_bridge.ports import HIL_BASE_PORT
 
 _SENSOR_TIME = struct.Struct("<Q")
 _ACTUATOR_CLASS = mavlink.dialect.MAVLink_hil_actuator_controls_message
@@ -35,7 +36,7 @@ class ConstantAutopilot:
         self,
         instance: int,
         host: str = "127.0.0.1",
-        base_port: int = 4560,
+        base_port: int = HIL_BASE_PORT,
         *,
         controls: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
         armed: bool = False,
@@ -150,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-i", "--instance", type=int, default=0)
     parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--base-port", type=int, default=4560)
+    parser.add_argument("--base-port", type=int, default=HIL_BASE_PORT)
     parser.add_argument("--connect-timeout", type=float, default=30.0)
     args = parser.parse_args(argv)
     peer = ConstantAutopilot(args.instance, args.host, args.base_port)

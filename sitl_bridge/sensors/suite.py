@@ -30,6 +30,7 @@ from sitl_bridge.sensors.environment import (
     pressure_altitude_m,
 )
 from sitl_bridge.sensors.geodesy import Projection
+from sitl_bridge.world.clock import DEFAULT_STEP_US
 from sitl_bridge.world.schema import GeoHome
 
 # PX4's simulated IMU FIFO stores int16 counts: clamp to its ranges (16 g, 2000 deg/s)
@@ -216,7 +217,7 @@ class SensorSuite:
         rates / noise: sensor rates and noise levels.
     """
 
-    def __init__(self, home: GeoHome, *, seed: int, step_us: int = 4000, rates: SensorRates | None = None,
+    def __init__(self, home: GeoHome, *, seed: int, step_us: int = DEFAULT_STEP_US, rates: SensorRates | None = None,
                  noise: SensorNoise | None = None) -> None:
         self.home = home
         self.step_us = step_us

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 
 from sitl_bridge.errors import ConfigError, Node, load_yaml
+from sitl_bridge.world.clock import divides
 from sitl_bridge.world.schema import (
     SHAPE_KINDS,
     AlongPath,
@@ -53,7 +54,27 @@ def parse_scenario(root: Node, base_dir: Path = Path(".")) -> World:
         task.mapping()
     if train is not None:
         train.mapping()
-    return _parse_world(root.get("world"), base_dir, task, train)
+    world = _parse_world(root.get("world"), base_dir, task, train)
+    if task is not None:
+        _check_step_divides_task(root.get("world").get("physics", {}), world.physics.step_us, task)
+    return world
+
+
+TASK_SPANS_S = (("action", "duration_s", 1.0), ("action", "zero_velocity_s", 0.0))
+"""The task's spans of simulated time (section, key, default: envs/task.py `ActionConfig`),
+each flown as whole physics steps by every backend."""
+
+
+def _check_step_divides_task(physics: Node, step_us: int, task: Node) -> None:
+    """`physics.step_us` must divide every span of the task (see `world.clock`), else the
+    backends could not fly the same steps."""
+    for section, key, default in TASK_SPANS_S:
+        node = task.get(section, {})
+        value = node.get(key, default).value if isinstance(node.value, dict) else default
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0 \
+                and not divides(step_us, value):
+            raise physics.get("step_us", step_us).error(
+                f"a step in microseconds that divides task.{section}.{key} ({value:g} s)", step_us)
 
 
 # ---------------------------------------------------------------------------------------------

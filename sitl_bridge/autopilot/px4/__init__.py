@@ -28,7 +28,7 @@ tail of its output (`Px4Died`). Processes never outlive us: each runs in its own
 group with a parent-death signal, and `stop()`/atexit kill the whole group.
 """
 
-from sitl_bridge.autopilot.px4.fleet import Px4Fleet
+from sitl_bridge.autopilot.px4.fleet import Px4Fleet, Px4SitlFleet
 from sitl_bridge.autopilot.px4.observer import GCS_BASE_PORT, Px4Observation
 from sitl_bridge.autopilot.px4.params import (
     MAX_SPEED_ASSUMED,
@@ -59,6 +59,7 @@ __all__ = [
     "Px4Died",
     "Px4Error",
     "Px4Fleet",
+    "Px4SitlFleet",
     "Px4Observation",
     "Px4Param",
     "find_px4_bin",

@@ -1,17 +1,37 @@
 """`Px4Fleet`: the PX4 processes of all vehicles of a lockstep, started, connected, made
-ready, restarted (or reset in place) between episodes, stopped."""
+ready, restarted (or reset in place) between episodes, stopped; `Px4SitlFleet`: the same as
+a session's `px4` autopilot kind."""
 
 from __future__ import annotations
 
 import math
+import shutil
+import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from sitl_bridge import mavlink
+from sitl_bridge.autopilot.fleet import (
+    PX4_SETPOINT_DELIVERY_S,
+    AutopilotFault,
+    AutopilotFleet,
+    FleetConfig,
+    ServeUntil,
+    VehicleSummary,
+    link_summary,
+)
 from sitl_bridge.autopilot.px4.observer import Px4Observation
 from sitl_bridge.autopilot.px4.process import Px4Autopilot, Px4Config, Px4Died, Px4Error
+from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil.errors import HilError
+from sitl_bridge.ports import (
+    PX4_LAST_OWN_API_INSTANCE,
+    PX4_SHARED_API_PORT,
+    VehiclePorts,
+    vehicle_ports,
+)
 
 
 class Px4Fleet:
@@ -172,3 +192,93 @@ class Px4Fleet:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+class Px4SitlFleet(AutopilotFleet):
+    """`px4`: a session's real PX4 SITL processes (a `Px4Fleet`), started, connected and run
+    until observed ready; a reset restarts them (PX4's estimator cannot follow a teleport
+    reliably), so MAVSDK clients should reconnect. Mode and armed flag come from PX4's own
+    HEARTBEAT on its GCS link (`Px4Autopilot.poll`), read when asked."""
+
+    resets_in_place = False
+
+    def __init__(self, config: FleetConfig) -> None:
+        super().__init__(config)
+        shared = [i for i in self.instances if i > PX4_LAST_OWN_API_INSTANCE]
+        if len(shared) > 1:
+            raise ConfigError(
+                f"instance_base: PX4 instances above {PX4_LAST_OWN_API_INSTANCE} all send their "
+                f"MAVLink API to UDP {PX4_SHARED_API_PORT}; with several vehicles use instances "
+                f"0..{PX4_LAST_OWN_API_INSTANCE}, got {self.instances[0]}..{self.instances[-1]}")
+        self.px4: Px4Fleet | None = None
+        self._temp_run_dir: Path | None = None
+
+    def start(self, links: Sequence[Any]) -> list[Any]:
+        config = self.config
+        run_dir = config.run_dir
+        if run_dir is None:
+            # Ours, so removed on close; pass run_dir to keep PX4's console logs.
+            run_dir = self._temp_run_dir = Path(tempfile.mkdtemp(prefix="sitl-bridge-px4-"))
+        # px4 resolves px4_params/ itself (wall timeouts via env + read-back); only extras here.
+        px4_config = Px4Config.create(config.px4_bin, run_dir, rootfs=config.px4_rootfs,
+                                      speed_factor=config.speed_factor, home=config.world.home,
+                                      extra_params=config.params)
+        self.px4 = Px4Fleet(px4_config, self.instances)
+        self.px4.start()
+        return []
+
+    def _fleet(self) -> Px4Fleet:
+        if self.px4 is None:
+            raise Px4Error("PX4 fleet not started")
+        return self.px4
+
+    def wait_ready(self, lockstep: Any) -> None:
+        self._fleet().wait_ready(lockstep)
+
+    def check(self) -> list[AutopilotFault]:
+        faults = []
+        for vehicle, autopilot in enumerate(self.px4.autopilots if self.px4 is not None else ()):
+            try:
+                autopilot.check_alive()
+            except Px4Error as exc:
+                faults.append(AutopilotFault(str(exc), vehicle=vehicle, instance=autopilot.instance,
+                                             reason="dead"))
+        return faults
+
+    def explain(self, error: BaseException) -> BaseException:
+        explained = self.px4.explain(error) if self.px4 is not None else error
+        if isinstance(explained, Px4Died):
+            return AutopilotFault(str(explained), vehicle=self.instances.index(explained.instance),
+                                  instance=explained.instance, reason="dead")
+        return super().explain(explained)
+
+    def close(self) -> None:
+        if self.px4 is not None:
+            self.px4.stop()
+        if self._temp_run_dir is not None:
+            shutil.rmtree(self._temp_run_dir, ignore_errors=True)
+            self._temp_run_dir = None
+
+    def restart(self, lockstep: Any, reset_simulation: Callable[[], None] | None = None) -> None:
+        try:
+            self._fleet().restart(lockstep, reset_simulation or (lambda: None),
+                                  connect_timeout_s=self.config.connect_timeout_s or 30.0)
+        except HilError as exc:
+            raise self.explain(exc) from exc
+
+    def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]],
+                          serve_until: ServeUntil, timeout_s: float) -> None:
+        # PX4 reads its MAVLink socket in wall time even while lockstep holds its clock, so a
+        # short wall wait lets the datagram land.
+        time.sleep(PX4_SETPOINT_DELIVERY_S)  # a delivery wait, not a flight timing
+
+    def summary(self, vehicle: int, link: Any) -> VehicleSummary:
+        # poll(): the observation only moves when read (it was read once at readiness, so the
+        # status line said "Hold disarmed" for a whole flight).
+        observation = self._fleet().autopilots[vehicle].poll()
+        if not observation.heartbeat:
+            return link_summary(link)
+        return observation.summary()
+
+    def ports(self, vehicle: int) -> VehiclePorts:
+        return vehicle_ports(self.instances[vehicle], px4=True)

@@ -15,10 +15,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from sitl_bridge import mavlink
+from sitl_bridge.autopilot.fleet import VehicleSummary
+from sitl_bridge.autopilot.modes import mode_name
+from sitl_bridge.ports import GCS_BIND_BASE_PORT
 
 log = logging.getLogger(__name__)
 
-GCS_BASE_PORT = 18570
+GCS_BASE_PORT = GCS_BIND_BASE_PORT
 MAV_SYS_STATUS_PREARM_CHECK = 0x10000000
 
 
@@ -36,6 +39,10 @@ class Px4Observation:
     position_ned_m: tuple[float, float, float] | None = None  # PX4's estimate (LOCAL_POSITION_NED)
     velocity_ned_m_s: tuple[float, float, float] | None = None
     acks: dict[int, int] = field(default_factory=dict)  # command -> MAV_RESULT
+
+    def summary(self) -> VehicleSummary:
+        """Mode name and armed flag of PX4's last HEARTBEAT."""
+        return VehicleSummary(mode_name(self.custom_mode), self.armed)
 
     @property
     def ready(self) -> bool:

@@ -26,6 +26,7 @@ from sitl_bridge.autopilot.px4.params import (
     format_value,
     load_param_overrides,
 )
+from sitl_bridge.ports import PX4_LAST_OWN_API_INSTANCE, api_client_port
 
 log = logging.getLogger(__name__)
 
@@ -224,9 +225,10 @@ class Px4Autopilot:
     def __init__(self, config: Px4Config, instance: int) -> None:
         if not 0 <= instance <= 254:
             raise Px4Error(f"PX4 instance must be in 0..254 (MAV_SYS_ID = instance + 1), got {instance}")
-        if instance > 9:
+        if instance > PX4_LAST_OWN_API_INSTANCE:
             log.warning("PX4 instance %d: PX4's px4-rc.mavlink sends the API link of every instance "
-                        ">= 10 to UDP 14549, not %d", instance, 14540 + instance)
+                        "above %d to UDP %d, not %d", instance, PX4_LAST_OWN_API_INSTANCE,
+                        api_client_port(instance, px4=True), api_client_port(instance))
         self.config = config
         self.instance = instance
         self.work_dir = config.run_dir / "px4" / str(instance)

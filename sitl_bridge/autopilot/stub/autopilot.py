@@ -24,7 +24,9 @@ if TYPE_CHECKING:
     from sitl_bridge.sensors import SensorFrame
 
 _NAN = float("nan")
-#: period of the position/velocity loop (the attitude and rate loops run every step)
+#: period of the position/velocity loop (the attitude and rate loops run every step); it runs on
+#: the step nearest to each period, whatever the physics step, and integrates the time that
+#: actually passed (8 ms: every 2nd step at 4 ms, every 4th at 2 ms, every 3rd at 3 ms)
 POSITION_CONTROL_PERIOD_US = 8000
 _OFF = MotorCommand((0.0, 0.0, 0.0, 0.0), False)
 _IDLE = MotorCommand((0.0, 0.0, 0.0, 0.0), True)
@@ -69,7 +71,7 @@ class StubAutopilot:
         self.attitude_setpoint: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
         self.steps = 0
         self._last_time_us: int | None = None
-        self._position_due_us: int | None = None
+        self._position_last_us: int | None = None  # the outer loop's last run
 
     def reset(self) -> None:
         """Reboot in place, as PX4 after `reboot` on a vehicle whose sensors keep running:
@@ -94,7 +96,7 @@ class StubAutopilot:
         self.thrust_collective = 0.0
         self.attitude_setpoint = (1.0, 0.0, 0.0, 0.0)
         self._last_time_us = None
-        self._position_due_us = None
+        self._position_last_us = None
 
     # --- lockstep ----------------------------------------------------------------------------
     def update(self, frame: SensorFrame) -> MotorCommand:
@@ -111,15 +113,17 @@ class StubAutopilot:
             self.position_control.reset()
             self.rate_control.reset()
             self.thrust_collective = 0.0
-            self._position_due_us = None
+            self._position_last_us = None
             self.last_command = _IDLE if output is Output.IDLE else _OFF
             return self.last_command
 
-        due = self._position_due_us
-        if due is None or time_us >= due or time_us < due - POSITION_CONTROL_PERIOD_US:
+        last_run = self._position_last_us
+        step_us = time_us - last if last is not None else 0
+        if (last_run is None or time_us < last_run
+                or 2 * (time_us - last_run) >= 2 * POSITION_CONTROL_PERIOD_US - step_us):
             # the outer loop runs at ~125 Hz like PX4's mc_pos_control on EKF2 output
-            pos_dt_s = POSITION_CONTROL_PERIOD_US * 1e-6 if due is not None else dt_s
-            self._position_due_us = time_us + POSITION_CONTROL_PERIOD_US
+            pos_dt_s = (time_us - last_run) * 1e-6 if last_run is not None and time_us > last_run else dt_s
+            self._position_last_us = time_us
             self._outer_loop(est, sp, pos_dt_s)
         yaw_rate_ff = sp.yaw_rate_rad_s
         if yaw_rate_ff != yaw_rate_ff:  # NaN: no feed-forward

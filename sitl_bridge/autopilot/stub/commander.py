@@ -26,6 +26,7 @@ from .modes import (
     LandedState,
     MainMode,
     custom_mode,
+    mode_name,
 )
 from .params import ParamTable
 from .vec import Vec3, quat_yaw, wrap_pi
@@ -455,17 +456,3 @@ class Commander:
                 self._land_xy = (home[0], home[1])
             return Setpoint(target, _NAN3, self._yaw_sp)
         return Setpoint((self._land_xy[0], self._land_xy[1], _NAN), (_NAN, _NAN, self._land_speed(e)), self._yaw_sp)
-
-
-_MODE_NAMES = {
-    custom_mode(*HOLD): "Hold",
-    custom_mode(*TAKEOFF): "Takeoff",
-    custom_mode(*LAND): "Land",
-    custom_mode(*RTL): "Return",
-    custom_mode(*OFFBOARD): "Offboard",
-}
-
-
-def mode_name(value: int) -> str:
-    """Human name of a PX4 custom_mode (as QGroundControl shows it)."""
-    return _MODE_NAMES.get(value, f"custom_mode {value}")

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from sitl_bridge import mavlink
+from sitl_bridge.ports import HIL_BASE_PORT
 from sitl_bridge.sensors import BaroSample, GpsSample, GroundTruth, SensorFrame
 
 from .estimator import NO_TRUTH
@@ -40,7 +41,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 d = mavlink.dialect
 
-HIL_BASE_PORT = 4560
 # PX4 asks for ground truth every 5 ms (for its logs); the ground-truth estimator wants it
 # every step; the sensor-estimating stub logs nothing and asks for none (-1 = disabled),
 # which saves encoding and decoding it on every step

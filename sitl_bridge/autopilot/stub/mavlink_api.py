@@ -25,6 +25,12 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from sitl_bridge import mavlink
+from sitl_bridge.ports import (
+    API_BIND_BASE_PORT,
+    API_CLIENT_BASE_PORT,
+    GCS_BIND_BASE_PORT,
+    GCS_REMOTE_PORT,
+)
 
 from . import telemetry
 from .modes import CommandResult, system_id_for
@@ -38,10 +44,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 d = mavlink.dialect
 
-API_BIND_BASE_PORT = 14580
-API_REMOTE_BASE_PORT = 14540
-GCS_BIND_BASE_PORT = 18570
-GCS_REMOTE_PORT = 14550
+API_REMOTE_BASE_PORT = API_CLIENT_BASE_PORT  # the stub's name for it
 KEEPALIVE_WALL_S = 1.0
 FORCE_DISARM_MAGIC = 21196
 

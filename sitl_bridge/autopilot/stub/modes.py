@@ -1,32 +1,22 @@
-"""PX4 flight modes, landed states and command results as MAVLink carries them."""
+"""PX4 flight modes (shared: `sitl_bridge.autopilot.modes`), landed states and command results
+as MAVLink carries them."""
 
 from __future__ import annotations
 
 from enum import IntEnum
 
-
-class MainMode(IntEnum):
-    """PX4 main modes (custom_mode bits 16-23)."""
-
-    MANUAL = 1
-    ALTCTL = 2
-    POSCTL = 3
-    AUTO = 4
-    ACRO = 5
-    OFFBOARD = 6
-    STABILIZED = 7
-    RATTITUDE = 8
-
-
-class AutoSubMode(IntEnum):
-    """PX4 AUTO sub-modes (custom_mode bits 24-31)."""
-
-    READY = 1
-    TAKEOFF = 2
-    LOITER = 3
-    MISSION = 4
-    RTL = 5
-    LAND = 6
+from sitl_bridge.autopilot.modes import (  # noqa: F401 - the stub's modes are PX4's
+    HOLD,
+    LAND,
+    OFFBOARD,
+    RTL,
+    TAKEOFF,
+    AutoSubMode,
+    MainMode,
+    custom_mode,
+    mode_name,
+    split_custom_mode,
+)
 
 
 class LandedState(IntEnum):
@@ -47,23 +37,6 @@ class CommandResult(IntEnum):
     DENIED = 2
     UNSUPPORTED = 3
     FAILED = 4
-
-
-def custom_mode(main_mode: int, sub_mode: int = 0) -> int:
-    """PX4's HEARTBEAT.custom_mode: main mode in bits 16-23, sub mode in bits 24-31."""
-    return ((int(main_mode) & 0xFF) << 16) | ((int(sub_mode) & 0xFF) << 24)
-
-
-def split_custom_mode(value: int) -> tuple[int, int]:
-    """(main_mode, sub_mode) of a PX4 custom_mode."""
-    return (value >> 16) & 0xFF, (value >> 24) & 0xFF
-
-
-HOLD = (MainMode.AUTO, AutoSubMode.LOITER)
-TAKEOFF = (MainMode.AUTO, AutoSubMode.TAKEOFF)
-LAND = (MainMode.AUTO, AutoSubMode.LAND)
-RTL = (MainMode.AUTO, AutoSubMode.RTL)
-OFFBOARD = (MainMode.OFFBOARD, 0)
 
 
 def system_id_for(instance: int) -> int:

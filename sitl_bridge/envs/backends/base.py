@@ -9,10 +9,14 @@ simulated step, so `direct` and `stub` agree on the same seed and actions:
    (randomised per the world, from `seed`) on the ground, autopilots rebooted (`direct`/`stub`:
    `StubAutopilot.reset`, a warm reboot with the short alignment; `px4`: restarted), sensor
    noise re-seeded; then the episode start, observed rather than timed: arm as soon as
-   the autopilot accepts (retried every `ARM_POLL_S`), take off to the task's start altitude
-   (PX4's AUTO.TAKEOFF with MIS_TAKEOFF_ALT), wait until in the air, in HOLD and within
-   `TAKEOFF_TOLERANCE_M` of it, switch to offboard with a zero-velocity setpoint and let it
-   settle for `SETTLE_S`; then held.
+   the autopilot accepts (retried every `EPISODE_START.arm_poll_s`), take off to the task's
+   start altitude (PX4's AUTO.TAKEOFF with MIS_TAKEOFF_ALT), wait until in the air, in HOLD
+   and within `takeoff_tolerance_m` of it, switch to offboard with a zero-velocity setpoint and
+   let it settle for `settle_s`; then held.
+
+Backends are built as `Backend(world, options, start_altitude_m=...)` with the env's whole
+`EnvOptions`; the registry (`sitl_bridge.autopilot.registry`) says which class serves which
+`autopilot=` kind.
 2. `fly(velocities_ned_m_s, duration_s)`: each vehicle's setpoint is set before the first step
    of the span and held for exactly `duration_s` simulated seconds; then held.
 """
@@ -29,35 +33,23 @@ from sitl_bridge.physics import VehicleState
 from sitl_bridge.sensors.lidar import LidarScan
 from sitl_bridge.world import GoalPlacement
 
-ARM_POLL_S = 0.1
-"""Simulated seconds between arming attempts while the estimator converges."""
-TAKEOFF_TOLERANCE_M = 0.1
-"""Takeoff is done within this distance of the start altitude (tighter than MAVSDK's 0.3 m,
-so episodes start from nearly the same hover)."""
-SETTLE_S = 1.0
-"""Simulated seconds of zero-velocity offboard hover before an episode's first action."""
-STARTUP_TIMEOUT_S = 30.0
-"""Simulated seconds the episode start may take before the backend gives up."""
 
-ESTIMATORS = ("sensors", "ground_truth")
-"""What the stub autopilot's state estimate comes from (`estimator=` of the envs):
+@dataclass(frozen=True)
+class EpisodeStart:
+    """How every backend starts an episode (see the module docstring), in simulated time."""
 
-* `sensors` (default, realistic): the stub's sensor-fusion estimator works from the simulated
-  IMU, magnetometer, barometer and GPS (noise included), as PX4's EKF2 does.
-* `ground_truth` (a labelled shortcut for speed, NOT what PX4 sees): the estimate is the
-  simulator's noise-free state. `direct` then skips the sensor simulation and the fusion
-  filter altogether; `stub` requests HIL_STATE_QUATERNION every step as PX4 does for its
-  ground-truth mode (`SimSession(stub_ground_truth=True)`), so both still agree. Not available
-  with `px4` (it always runs EKF2)."""
+    arm_poll_s: float = 0.1
+    """Between arming attempts while the estimator converges."""
+    takeoff_tolerance_m: float = 0.1
+    """Takeoff is done within this distance of the start altitude (tighter than MAVSDK's
+    0.3 m, so episodes start from nearly the same hover)."""
+    settle_s: float = 1.0
+    """Zero-velocity offboard hover before an episode's first action."""
+    timeout_s: float = 30.0
+    """The episode start may take this long before the backend gives up."""
 
 
-def check_estimator(estimator: str, autopilot: str) -> str:
-    """`estimator` if `autopilot` supports it; ValueError otherwise."""
-    if estimator not in ESTIMATORS:
-        raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
-    if estimator == "ground_truth" and autopilot == "px4":
-        raise ValueError("estimator='ground_truth' needs the stub autopilot (direct or stub); PX4 runs EKF2")
-    return estimator
+EPISODE_START = EpisodeStart()
 
 
 class BackendError(RuntimeError):
@@ -83,7 +75,7 @@ class Backend(Protocol):
     """What `SitlEnv` / `SitlParallelEnv` need from a simulator + autopilots."""
 
     name: str
-    """`direct`, `stub` or `px4`."""
+    """The autopilot kind it runs (`direct`, `stub`, `px4`, ...)."""
     num_drones: int
 
     def reset(self, seed: int | None = None) -> Snapshot:

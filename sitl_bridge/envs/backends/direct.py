@@ -25,23 +25,17 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from sitl_bridge.autopilot.modes import HOLD, MainMode, custom_mode
 from sitl_bridge.autopilot.stub.autopilot import StubAutopilot
-from sitl_bridge.autopilot.stub.modes import HOLD, CommandResult, LandedState, MainMode, custom_mode
+from sitl_bridge.autopilot.stub.modes import CommandResult, LandedState
 from sitl_bridge.autopilot.stub.params import ParamTable
-from sitl_bridge.envs.backends.base import (
-    ARM_POLL_S,
-    SETTLE_S,
-    STARTUP_TIMEOUT_S,
-    TAKEOFF_TOLERANCE_M,
-    BackendError,
-    Snapshot,
-    check_estimator,
-)
+from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, Snapshot
+from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.physics import MotorCommand, Simulation
-from sitl_bridge.sensors import SensorSuite
+from sitl_bridge.sensors import SensorSuite, sensor_seed
 from sitl_bridge.sensors.lidar import Lidar
-from sitl_bridge.session import sensor_seed
 from sitl_bridge.world import World
+from sitl_bridge.world.clock import whole_steps
 
 SETPOINT_PERIOD_S = 0.05
 """MAVSDK re-sends offboard setpoints at 20 Hz; the direct backend refreshes them as often."""
@@ -55,14 +49,14 @@ class DirectBackend:
 
     name = "direct"
 
-    def __init__(self, world: World, *, start_altitude_m: float, seed: int = 0,
-                 gui: bool = False, estimator: str = "sensors") -> None:
-        self.estimator = check_estimator(estimator, "direct")
-        ground_truth = estimator == "ground_truth"
+    def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float) -> None:
+        self.estimator = options.estimator
+        ground_truth = options.ground_truth
+        seed = options.first_seed
         self.world = world
         self.num_drones = world.num_vehicles
         self.start_altitude_m = float(start_altitude_m)
-        self.sim = Simulation(world, seed=seed, step_us=None, gui=gui)  # world's step, as SimSession
+        self.sim = Simulation(world, seed=seed, step_us=None, gui=options.gui)  # world's step, as SimSession
         self.lidar = Lidar(self.sim, [v.lidar for v in world.vehicles])
         self.sensors = [SensorSuite(world.home, seed=sensor_seed(seed, i), step_us=self.sim.step_us)
                         for i in range(self.num_drones)]
@@ -72,7 +66,7 @@ class DirectBackend:
         self._frame_of = [s.truth_frame if ground_truth else s.sample for s in self.sensors]
         self._collided = [False] * self.num_drones
         self._velocities: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)] * self.num_drones
-        self._refresh_steps = max(1, round(SETPOINT_PERIOD_S * 1e6 / self.sim.step_us))
+        self._refresh_steps = max(1, self.steps_for(SETPOINT_PERIOD_S, exact=False))
         self.steps = 0
         self._closed = False
 
@@ -95,7 +89,7 @@ class DirectBackend:
             raise ValueError(f"expected {self.num_drones} velocities, got {len(velocities_ned_m_s)}")
         self._collided = [False] * self.num_drones
         self.set_velocities([tuple(float(c) for c in v) for v in velocities_ned_m_s])
-        self.run_steps(self.steps_for(duration_s))
+        self.run_steps(self.steps_for(duration_s))  # exact: the loader checked the task's spans
         return self._snapshot()
 
     def close(self) -> None:
@@ -104,9 +98,9 @@ class DirectBackend:
             self.sim.close()
 
     # -- the loop -------------------------------------------------------------------------
-    def steps_for(self, seconds: float) -> int:
-        """Whole physics steps in `seconds` (rounded, as the lockstep's run_for)."""
-        return max(0, round(seconds * 1e6 / self.sim.step_us))
+    def steps_for(self, seconds: float, *, exact: bool = True) -> int:
+        """Physics steps in `seconds` (`world.clock.whole_steps`, as the lockstep's run_for)."""
+        return whole_steps(seconds, self.sim.step_us, exact=exact)
 
     def set_velocities(self, velocities: list[tuple[float, float, float]]) -> None:
         """Give every autopilot its offboard velocity setpoint now (MAVSDK's first send)."""
@@ -139,8 +133,9 @@ class DirectBackend:
     # -- episode start: the same sequence the `stub` backend sends through MAVSDK -------------
     def _hover_start(self) -> None:
         """Arm once the estimate allows, take off to the start altitude, offboard, settle."""
-        budget = self.steps_for(STARTUP_TIMEOUT_S)
-        poll = self.steps_for(ARM_POLL_S)
+        start = EPISODE_START
+        budget = self.steps_for(start.timeout_s, exact=False)
+        poll = self.steps_for(start.arm_poll_s, exact=False)
         while not all(ap.arm() is CommandResult.ACCEPTED for ap in self.autopilots):
             budget -= self.run_steps(poll)
             if budget <= 0:
@@ -151,12 +146,12 @@ class DirectBackend:
         budget -= self.run_steps(budget, until=self._takeoff_done)
         if not self._takeoff_done():
             raise BackendError(f"direct: takeoff to {self.start_altitude_m:g} m not done within "
-                               f"{STARTUP_TIMEOUT_S:g} s of simulated time")
+                               f"{start.timeout_s:g} s of simulated time")
         self.set_velocities([(0.0, 0.0, 0.0)] * self.num_drones)
         for ap in self.autopilots:
             if ap.set_mode(MainMode.OFFBOARD, 0) is not CommandResult.ACCEPTED:
                 raise BackendError(f"direct: vehicle {ap.instance} refused offboard")
-        self.run_steps(self.steps_for(SETTLE_S))
+        self.run_steps(self.steps_for(start.settle_s, exact=False))
 
     def _takeoff_done(self) -> bool:
         """The MAVSDK client's test: in the air, back in HOLD, within tolerance of the altitude."""
@@ -167,7 +162,7 @@ class DirectBackend:
             if ap.custom_mode != _HOLD_MODE:
                 return False
             altitude = home.position_ned_m[2] - ap.estimate.position_ned_m[2]
-            if abs(altitude - self.start_altitude_m) > TAKEOFF_TOLERANCE_M:
+            if abs(altitude - self.start_altitude_m) > EPISODE_START.takeoff_tolerance_m:
                 return False
         return True
 

@@ -1,4 +1,5 @@
-"""`stub` and `px4` backends: the full protocol path through `SimSession` and MAVSDK.
+"""The session backend (`stub`, `px4`, any kind with a session and env support): the full
+protocol path through `SimSession` and MAVSDK.
 
 simulator -> HIL link (TCP) -> autopilot (in-process stub, or real PX4) -> MAVLink API (UDP)
 -> MAVSDK (`Fleet` of `OffboardClient`s) -> this backend. Every command of an episode goes
@@ -6,18 +7,18 @@ through MAVSDK exactly as a user's script would send it; ground truth for observ
 rewards is read from the simulation while it is held.
 
 Episode start (see `base`): the same sequence as `direct`, through MAVSDK: arm (retried every
-`ARM_POLL_S` while the autopilot denies it), takeoff to the start altitude, wait until hovering
-there in HOLD, offboard with a zero-velocity setpoint, settle.
+`EPISODE_START.arm_poll_s` while the autopilot denies it), takeoff to the start altitude, wait
+until hovering there in HOLD, offboard with a zero-velocity setpoint, settle.
 
-Reset between episodes:
-* `stub`: in place, on the same ports and MAVSDK connections: `SimSession.reset(seed)`
+Reset between episodes, as the kind's fleet says (`AutopilotFleet.resets_in_place`):
+* in place (`stub`), on the same ports and MAVSDK connections: `SimSession.reset(seed)`
   re-spawns the simulation with the episode's seed (simulated time back to 0, as `direct`),
   re-seeds the sensor noise and reboots every stub (`StubVehicle.reset`: disarmed, fresh
   estimator with the short warm alignment, as `direct`'s `StubAutopilot.reset`), while the
   HIL link keeps the stubs' clock counting up (their stream schedules, the lockstep's answer
   matching and MAVSDK all see monotonic time).
-* `px4`: PX4's estimator cannot be teleported (the thesis's position jump), so the session is
-  restarted: PX4 processes, links and MAVSDK clients, on the same instances.
+* a restart (`px4`: PX4's estimator cannot be teleported, the thesis's position jump): the
+  session is restarted, autopilot processes, links and MAVSDK clients, on the same instances.
 
 Collisions come from the session's collision log (`SimSession.take_collisions`), each
 physics step's exactly once; a new setpoint reaches in-process stubs before the first step
@@ -27,47 +28,35 @@ of its span (`SimSession.deliver_pending_commands`), as in `direct`.
 from __future__ import annotations
 
 import contextlib
-import tempfile
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
+from sitl_bridge.autopilot.registry import env_kind
 from sitl_bridge.client import Fleet, OffboardClientError
-from sitl_bridge.envs.backends.base import (
-    ARM_POLL_S,
-    SETTLE_S,
-    STARTUP_TIMEOUT_S,
-    TAKEOFF_TOLERANCE_M,
-    BackendError,
-    Snapshot,
-    check_estimator,
-)
+from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, Snapshot
+from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.session import SessionError, SimSession
 from sitl_bridge.world import World
-
-"""Wall seconds a velocity setpoint may take from MAVSDK to an in-process stub."""
+from sitl_bridge.world.clock import nearest_whole_steps_s
 
 
 class SessionBackend:
     """A `SimSession` with a MAVSDK `Fleet`, flown through the Backend API."""
 
-    def __init__(self, world: World, *, autopilot: str, start_altitude_m: float,
-                 speed_factor: float = 0.0, instance_base: int = 0,
-                 px4_bin: str | None = None, gui: bool = False, estimator: str = "sensors") -> None:
-        if autopilot not in ("stub", "px4"):
-            raise ValueError(f"SessionBackend runs 'stub' or 'px4', got {autopilot!r}")
-        self.estimator = check_estimator(estimator, autopilot)
-        self.name = autopilot
+    def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float) -> None:
+        self.estimator = options.estimator
+        self.name = options.autopilot
+        self.resets_in_place = env_kind(options.autopilot).fleet_class().resets_in_place
         self.world = world
         self.num_drones = world.num_vehicles
         self.start_altitude_m = float(start_altitude_m)
-        # PX4 keeps its working directories and logs here across restarts; removed on close.
-        self._run_dir = tempfile.TemporaryDirectory(prefix="sitl-bridge-env-") if autopilot == "px4" else None
-        self._options = dict(autopilot=autopilot, speed_factor=speed_factor,
-                             instance_base=instance_base, px4_bin=px4_bin, gui=gui,
-                             run_dir=self._run_dir.name if self._run_dir is not None else None,
-                             stub_ground_truth=estimator == "ground_truth")
+        self._session_options: dict[str, Any] = dict(
+            autopilot=options.autopilot, speed_factor=options.speed_factor,
+            instance_base=options.instance_base, px4_bin=options.px4_bin, gui=options.gui,
+            ground_truth_estimate=options.ground_truth)
         self.session: SimSession | None = None
         self.fleet: Fleet | None = None
         self.lidar: Lidar | None = None
@@ -78,18 +67,18 @@ class SessionBackend:
     # -- Backend API --------------------------------------------------------------------
     def reset(self, seed: int | None = None) -> Snapshot:
         seed = 0 if seed is None else int(seed)
-        if self.session is not None and self.name == "px4":
-            self._stop()  # PX4: restart rather than teleport its estimator
+        if self.session is not None and not self.resets_in_place:
+            self._stop()  # e.g. PX4: restart rather than teleport its estimator
         if self.session is None:
             self._start(seed)
         session = self._session()
-        if self.name == "stub":
+        if self.resets_in_place:
             # Also right after a start: connecting let time run, and every episode must begin
             # from the same state as `direct`'s (rebooted autopilot, freshly seeded sensors).
             session.reset(seed)
             assert self.lidar is not None
             self.lidar.reset()
-        # A PX4 just started on the episode's layout (drawn from `seed` by SimSession).
+        # Otherwise the autopilots just started on the episode's layout (drawn from `seed`).
         self._episode_start_us = session.time_us
         self._hover_start()
         session.take_collisions()  # the episode start's do not count
@@ -116,8 +105,6 @@ class SessionBackend:
         if not self._closed:
             self._closed = True
             self._stop()
-            if self._run_dir is not None:
-                self._run_dir.cleanup()
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _session(self) -> SimSession:
@@ -131,7 +118,7 @@ class SessionBackend:
         return self.fleet
 
     def _start(self, seed: int) -> None:
-        session = SimSession(self.world, seed=seed, **self._options)  # type: ignore[arg-type]
+        session = SimSession(self.world, seed=seed, **self._session_options)
         try:
             session.start()
             self.session = session
@@ -155,21 +142,23 @@ class SessionBackend:
 
     # -- episode start --------------------------------------------------------------------------
     def _hover_start(self) -> None:
-        session, fleet = self._session(), self._fleet()
+        session, fleet, start = self._session(), self._fleet(), EPISODE_START
+        step_us = session.step_us
+        poll_s = nearest_whole_steps_s(start.arm_poll_s, step_us)
         waited = 0.0
         while True:
             try:
                 fleet.arm()
                 break
             except OffboardClientError:
-                if waited >= STARTUP_TIMEOUT_S:
+                if waited >= start.timeout_s:
                     raise BackendError(f"{self.name}: vehicles never became armable") from None
-                session.run_for(ARM_POLL_S)
-                waited += ARM_POLL_S
-        fleet.takeoff(self.start_altitude_m, timeout_s=STARTUP_TIMEOUT_S,
-                      tolerance_m=TAKEOFF_TOLERANCE_M)
+                session.run_for(poll_s)
+                waited += poll_s
+        fleet.takeoff(self.start_altitude_m, timeout_s=start.timeout_s,
+                      tolerance_m=start.takeoff_tolerance_m)
         fleet.start_offboard()
-        session.run_for(SETTLE_S)
+        session.run_for(nearest_whole_steps_s(start.settle_s, step_us))
 
     # -- observation ----------------------------------------------------------------------------
     def _snapshot(self) -> Snapshot:
