@@ -85,11 +85,9 @@ def yaw_ned_to_enu(yaw_ned_rad: float) -> float:
 
 
 def wrap_pi(angle_rad: float) -> float:
-    """Wrap an angle into (-pi, pi]."""
-    wrapped = math.fmod(angle_rad + math.pi, 2.0 * math.pi)
-    if wrapped <= 0.0:
-        wrapped += 2.0 * math.pi
-    return wrapped - math.pi
+    """Wrap an angle into (-pi, pi] (the one definition; the stub's controllers use it too)."""
+    wrapped = math.pi - (math.pi - angle_rad) % (2.0 * math.pi)
+    return wrapped if wrapped > -math.pi else math.pi  # % can round up to 2 pi itself
 
 
 # --------------------------------------------------------------------------------------------

@@ -42,7 +42,7 @@ from sitl_bridge.autopilot.fleet import (
 )
 from sitl_bridge.autopilot.registry import session_kind
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.hil import HilLink, Lockstep, SimRunner
+from sitl_bridge.hil import HilError, HilLink, Lockstep, SimRunner
 from sitl_bridge.physics.simulation import Collision, Simulation, VehicleState
 from sitl_bridge.ports import VehiclePorts
 from sitl_bridge.sensors import SensorSuite, sensor_seed
@@ -275,6 +275,9 @@ class SimSession:
             runner.wait(timeout_s)
         except TimeoutError:
             return False
+        except HilError as exc:  # a dead or frozen autopilot: say which (AutopilotFault)
+            explained = self.autopilots.explain(exc)
+            raise explained from (None if explained is exc else exc)
         return True
 
     def resume(self) -> None:

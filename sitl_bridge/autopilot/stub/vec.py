@@ -16,6 +16,7 @@ from sitl_bridge.frames import quat_from_euler_t as quat_from_euler
 from sitl_bridge.frames import quat_multiply_t as quat_multiply
 from sitl_bridge.frames import quat_rotate_t as quat_rotate
 from sitl_bridge.frames import quat_to_euler_t as quat_to_euler
+from sitl_bridge.frames import wrap_pi
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
@@ -35,11 +36,6 @@ def norm(v: Vec3) -> float:
 def clamp(value: float, low: float, high: float) -> float:
     """value limited to [low, high]."""
     return low if value < low else high if value > high else value
-
-
-def wrap_pi(angle_rad: float) -> float:
-    """Angle wrapped into [-pi, pi)."""
-    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def quat_conjugate_multiply(a: Quat, b: Quat) -> Quat:
