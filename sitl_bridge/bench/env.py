@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sitl_bridge.autopilot import registry
 from sitl_bridge.envs import make_env, worlds_dir
 from sitl_bridge.ports import instance_free
 
@@ -86,7 +87,7 @@ def _free_instance() -> int:
 def measure(backend: str, scenario: Path, seconds: float, seed: int = 0,
             estimator: str = "sensors") -> EnvFigures:
     """Fly `seconds` of simulated time of random actions on `backend` with `estimator`."""
-    instance = _free_instance() if backend != "direct" else 0
+    instance = _free_instance() if registry.get(backend).has_session else 0  # sockets only with a session
     env = make_env(scenario, autopilot=backend, speed_factor=0.0, seed=seed, instance_base=instance,
                    estimator=estimator)
     rng = np.random.default_rng(seed)
