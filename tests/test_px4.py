@@ -32,6 +32,7 @@ from sitl_bridge.autopilot.px4 import (  # noqa: E402
 from sitl_bridge.errors import ConfigError  # noqa: E402
 from sitl_bridge.hil import HilError, HilLink, Lockstep  # noqa: E402
 from sitl_bridge.physics.simulation import Simulation  # noqa: E402
+from sitl_bridge.ports import api_bind_port, api_client_port  # noqa: E402
 from sitl_bridge.sensors.suite import SensorSuite  # noqa: E402
 from sitl_bridge.world.loader import load_world  # noqa: E402
 
@@ -161,9 +162,9 @@ class ApiClient:
 
     def __init__(self, instance: int) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 14540 + instance))
+        self.sock.bind(("127.0.0.1", api_client_port(instance)))
         self.sock.setblocking(False)
-        self.target = ("127.0.0.1", 14580 + instance)
+        self.target = ("127.0.0.1", api_bind_port(instance))
         self.system = instance + 1
         self.codec = mav.MAVLink(None, srcSystem=245, srcComponent=190)
         self.acks: dict[int, int] = {}

@@ -15,6 +15,7 @@ import pytest
 from sitl_bridge.autopilot.modes import mode_name as px4_mode_name
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil.peer import ConstantAutopilot
+from sitl_bridge.ports import api_bind_port, api_client_port, gcs_bind_port, hil_port
 from sitl_bridge.session import SimSession
 from sitl_bridge.world.loader import load_world
 from sitl_bridge.world.lookup import default_world_path, resolve_world, with_vehicle_count
@@ -26,10 +27,10 @@ def ports_released(instance: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
         tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            tcp.bind(("127.0.0.1", 4560 + instance))
+            tcp.bind(("127.0.0.1", hil_port(instance)))
         except OSError:
             return False
-    for port in (14580 + instance, 14540 + instance, 18570 + instance):
+    for port in (api_bind_port(instance), api_client_port(instance), gcs_bind_port(instance)):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
             try:
                 udp.bind(("127.0.0.1", port))
