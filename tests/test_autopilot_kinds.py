@@ -217,3 +217,15 @@ def test_px4_status_line_shows_the_mode_and_armed_flag_px4_reports(fake_px4: Pat
             session.run_for(1.0)
             assert session.vehicle_summary(0) == ("Offboard", True)
             assert f"[{instance}] Offboard ARMED" in session.status_line()
+
+
+def test_in_process_stubs_restart_cold_on_the_same_ports(free_instance: int) -> None:
+    with SimSession("empty", autopilot="stub", speed_factor=0, instance_base=free_instance) as session:
+        session.run_for(0.5)
+        old = session.autopilots.stubs[0]
+        ports = session.autopilots.vehicles[0].api.ports
+        session.restart_autopilots()
+        session.run_for(0.5)
+        assert session.autopilots.stubs[0] is not old and session.autopilots.vehicles[0].api.ports == ports
+        assert session.faults() == [] and session.lockstep.stats.timeouts == 0
+        assert session.links[0].stats.connections == 2
