@@ -33,27 +33,16 @@ from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 
-from sitl_bridge.autopilot.fleet import (
-    AutopilotFault,
-    AutopilotFleet,
-    FleetConfig,
-    SessionError,
-    VehicleSummary,
-)
+from sitl_bridge.autopilot.fleet import AutopilotFault, AutopilotFleet, FleetConfig, SessionError
 from sitl_bridge.autopilot.registry import session_kind
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil import HilError, HilLink, Lockstep, SimRunner
 from sitl_bridge.physics.simulation import Collision, Simulation, VehicleState
 from sitl_bridge.ports import VehiclePorts
 from sitl_bridge.sensors import SensorSuite, sensor_seed
+from sitl_bridge.world import World, default_world_path, resolve_world, with_vehicle_count
 from sitl_bridge.world.loader import load_world
-from sitl_bridge.world.lookup import (
-    DEFAULT_WORLD,
-    default_world_path,
-    resolve_world,
-    with_vehicle_count,
-)
-from sitl_bridge.world.schema import World
+from sitl_bridge.world.lookup import DEFAULT_WORLD
 
 log = logging.getLogger(__name__)
 
@@ -183,17 +172,14 @@ class SimSession:
         self._closers.append(self.runner.close)
 
     def faults(self) -> list[AutopilotFault]:
-        """Every autopilot that is dead or frozen now ([] when healthy): what the fleet sees
-        (processes) plus a lockstep failure of the runner thread, which is taken (reported
-        once). What a supervisor acts on, e.g. with `restart_autopilots()`."""
-        faults = self.autopilots.check()
-        error = self.runner.error if self.runner is not None else None
-        if error is not None:
-            explained = self.autopilots.explain(error)
-            if isinstance(explained, AutopilotFault):
-                self.runner.error = None  # type: ignore[union-attr]
-                if not any(f.instance == explained.instance for f in faults):
-                    faults.append(explained)
+        """Every dead or frozen autopilot now ([] when healthy): the fleet's `check()` plus a
+        lockstep failure that stopped the runner thread (taken: reported once). What a
+        supervisor acts on, e.g. with `restart_autopilots()`."""
+        faults, runner = self.autopilots.check(), self.runner
+        explained = self.autopilots.explain(runner.error) if runner and runner.error else None
+        if runner is not None and isinstance(explained, AutopilotFault):
+            runner.error = None
+            faults += [explained] if all(f.instance != explained.instance for f in faults) else []
         return faults
 
     def check(self) -> None:
@@ -394,7 +380,7 @@ class SimSession:
 
     def vehicle_summary(self, vehicle: int) -> tuple[str, bool]:
         """(mode name, armed) of a vehicle as its autopilot reports it ('-': mode unknown)."""
-        summary: VehicleSummary = self.autopilots.summary(vehicle, self.links[vehicle])
+        summary = self.autopilots.summary(vehicle, self.links[vehicle])
         return summary.mode, summary.armed
 
     def status_line(self) -> str:

@@ -58,3 +58,12 @@ def test_pymavlink_has_one_importer() -> None:
     importers = {str(path.relative_to(PACKAGE.parent)) for _, path in _sources()
                  if any(m.split(".")[0] == "pymavlink" for m in _imports(path))}
     assert importers == {"sitl_bridge/mavlink.py"}
+
+
+def test_the_session_only_composes() -> None:
+    """session.py keeps only the session, and no module compares the autopilot kind's name
+    (kinds are `AutopilotFleet` classes in `autopilot/registry.py`)."""
+    assert len((PACKAGE / "session.py").read_text().splitlines()) < 400
+    offenders = [str(path.relative_to(PACKAGE.parent)) for _, path in _sources()
+                 if "autopilot ==" in path.read_text() and path.name != "registry.py"]
+    assert not offenders
