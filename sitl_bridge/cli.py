@@ -13,6 +13,7 @@ import importlib.util
 import logging
 import sys
 
+from sitl_bridge import __version__
 from sitl_bridge.errors import ConfigError
 
 # Order here is the order in `--help`.
@@ -37,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Lockstep drone simulator, PX4-compatible autopilot stub, RL environments.",
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug)")
+    parser.add_argument("--version", action="version", version=f"sitl-bridge {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         module_name = f"sitl_bridge.commands.{name}"

@@ -388,7 +388,8 @@ class SimSession:
         parts = [f"t={self.time_s:8.2f} s", f"rtf {self.real_time_factor:6.1f}x"]
         for k, instance in enumerate(self.instances):
             mode, armed = self.vehicle_summary(k)
-            x, y, z = self.vehicle_state(k).position_enu_m
+            # `or 0.0` turns a rounded -0.0 into 0.0 (no "E-0.0" for a vehicle at the origin).
+            x, y, z = (round(float(v), 1) or 0.0 for v in self.vehicle_state(k).position_enu_m)
             parts.append(f"[{instance}] {mode} {'ARMED' if armed else 'disarmed'} "
                          f"E{x:+.1f} N{y:+.1f} U{z:+.1f}")
         return " | ".join(parts)

@@ -32,7 +32,8 @@ from sitl_bridge.client.actions import Action, action_velocity_ned  # noqa: E402
 from sitl_bridge.physics import IrisParams  # noqa: E402
 from sitl_bridge.world.loader import load_world  # noqa: E402
 
-DEFAULT_CSV = REPO.parent / "shared" / "data" / "px4-sih-action-response.csv"
+DEFAULT_CSV = REPO / "tests" / "data" / "px4-sih-action-response.csv"
+"""The real-PX4 (SIH) recording shipped with the repository (a copy of the shared data)."""
 STEP_S = 1.0
 HOVER = int(Action.HOVER)
 
@@ -131,7 +132,7 @@ def summarize(steps: list[Step]) -> dict[str, list[float]]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--csv", type=Path, default=DEFAULT_CSV, help="PX4 recording (default: shared data)")
+    parser.add_argument("--csv", type=Path, default=DEFAULT_CSV, help="PX4 recording (default: tests/data/px4-sih-action-response.csv)")
     parser.add_argument("--world", type=Path, default=REPO / "worlds" / "empty.yaml")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--ground-truth", action="store_true", help="stub estimates from ground truth")
@@ -140,6 +141,12 @@ def main(argv: list[str] | None = None) -> int:
                              "is ~0.36; PX4's SIH quad, which made the recording, uses 1.0)")
     args = parser.parse_args(argv)
 
+    if not args.csv.is_file():
+        print(f"error: {args.csv}: no such PX4 recording (pass --csv PATH)", file=sys.stderr)
+        return 2
+    if not args.world.is_file():
+        print(f"error: {args.world}: no such world file (pass --world PATH)", file=sys.stderr)
+        return 2
     px4 = px4_steps(args.csv)
     stub = stub_steps([s.action for s in px4], args.world, args.seed, args.ground_truth, args.drag)
     names = {int(a): a.name.lower() for a in Action}

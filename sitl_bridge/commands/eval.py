@@ -1,4 +1,5 @@
-"""`sitl-bridge eval CHECKPOINT --world WORLD.yaml`: greedy evaluation of a trained policy."""
+"""`sitl-bridge eval RUN_DIR_OR_CHECKPOINT [--world WORLD.yaml]`: greedy evaluation of a trained
+policy, in the run's own scenario unless `--world` names another."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("eval", help="greedy evaluation of a checkpoint or run directory",
                                    description=__doc__)
     parser.add_argument("checkpoint", help="checkpoint file or run directory (newest valid checkpoint)")
-    parser.add_argument("--world", required=True, help="scenario file to evaluate in")
+    parser.add_argument("--world", help="scenario file to evaluate in (default: the run's own world)")
     parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes (default 100)")
     add_env_autopilot_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
@@ -25,10 +26,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     from sitl_bridge.rl.checkpoint import CheckpointError
     from sitl_bridge.rl.evaluate import evaluate_checkpoint
+    from sitl_bridge.rl.run_dir import run_scenario
 
     try:
-        result, _ = evaluate_checkpoint(args.checkpoint, args.world, episodes=args.episodes,
-                                        autopilot=args.autopilot, seed=args.seed)
+        world = args.world or run_scenario(args.checkpoint)
+        result, _ = evaluate_checkpoint(args.checkpoint, world, episodes=args.episodes,
+                                        autopilot=args.autopilot, seed=args.seed, progress=True)
     except (ConfigError, CheckpointError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -26,16 +26,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.checkpoint import CheckpointError, resolve_checkpoint
+    from sitl_bridge.rl.checkpoint import CheckpointError
     from sitl_bridge.rl.evaluate import evaluate_checkpoint
     from sitl_bridge.rl.rules import summarize_behaviour
+    from sitl_bridge.rl.run_dir import run_scenario
 
     try:
-        world = args.world or resolve_checkpoint(args.checkpoint)[2].get("world")
-        if not world:
-            raise ConfigError("command line: --world: expected a scenario file, got nothing")
+        world = args.world or run_scenario(args.checkpoint)
         _, traces = evaluate_checkpoint(args.checkpoint, world, episodes=args.episodes,
-                                        autopilot=args.autopilot, seed=args.seed)
+                                        autopilot=args.autopilot, seed=args.seed, progress=True)
     except (ConfigError, CheckpointError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

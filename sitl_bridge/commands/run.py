@@ -26,7 +26,9 @@ RUNTIME_FAILURES: tuple[type[BaseException], ...] = (SessionError, HilError, Px4
 """Failures reported as one message (exit 1) rather than a traceback."""
 
 STATUS_PERIOD_S = 0.5
-"""Wall seconds between status lines."""
+"""Wall seconds between status updates on a terminal (one line, rewritten in place)."""
+LOG_STATUS_PERIOD_S = 10.0
+"""Wall seconds between status lines when stdout is not a terminal (a log file)."""
 
 
 def speed_factor_arg(text: str) -> float:
@@ -151,6 +153,7 @@ def _serve(session: SimSession, args: argparse.Namespace) -> int:
         session.run_for(nearest_whole_steps_s(args.duration, session.step_us), wait=False)
     else:
         session.resume()
+    last_line = time.monotonic()
     while True:
         done = session.wait_held(STATUS_PERIOD_S) if args.duration is not None else False
         if args.duration is None:
@@ -158,9 +161,13 @@ def _serve(session: SimSession, args: argparse.Namespace) -> int:
         session.check()  # raises if the runner or an autopilot died
         if done:
             break
-        if not args.quiet:
-            line = session.status_line()
-            print(f"\r{line}\033[K" if tty else line, end="" if tty else "\n", flush=True)
+        if args.quiet:
+            continue
+        if tty:
+            print(f"\r{session.status_line()}\033[K", end="", flush=True)
+        elif time.monotonic() - last_line >= LOG_STATUS_PERIOD_S:
+            print(session.status_line(), flush=True)
+            last_line = time.monotonic()
     if tty and not args.quiet:
         print()
     print(session.status_line(), flush=True)
@@ -205,15 +212,19 @@ def _run_policy(args: argparse.Namespace) -> int:
     from sitl_bridge.rl.evaluate import summarize
     from sitl_bridge.rl.policy import policy_from_checkpoint
     from sitl_bridge.rl.rollout import eval_seeds, rollout
+    from sitl_bridge.rl.run_dir import run_dir_of, run_scenario
 
-    world = str(args.world or default_world_path())
     try:
+        # The run's own scenario unless a world is named (a bare checkpoint file: the default world).
+        world = str(args.world or (run_scenario(args.policy) if run_dir_of(args.policy) else default_world_path()))
         policy = policy_from_checkpoint(args.policy)
+        print(f"flying {args.policy} greedily in {world} through MAVSDK and the {args.autopilot} autopilot: "
+              f"{args.episodes} episode(s); starting the simulator...", flush=True)
         factory = scenario_env_factory(world, args.autopilot, speed_factor=args.speed_factor,
                                        instance_base=args.instance_base, px4_bin=args.px4_bin, gui=args.gui)
         env = DronesEnv(factory(args.seed))
         try:
-            traces = rollout(env, policy, eval_seeds(args.seed, args.episodes))
+            traces = rollout(env, policy, eval_seeds(args.seed, args.episodes), on_episode=_print_episode)
         finally:
             env.close()
     except KeyboardInterrupt:
@@ -225,8 +236,12 @@ def _run_policy(args: argparse.Namespace) -> int:
     except RUNTIME_FAILURES as exc:
         print(f"sitl-bridge run: {exc}", file=sys.stderr)
         return 1
+    print(summarize(world, args.episodes, traces).summary(), flush=True)
+    return 0
+
+
+def _print_episode(traces: list) -> None:
+    """One line per drone as soon as its episode ends (`run --policy` progress)."""
     for trace in traces:
         print(f"episode {trace.episode} drone {trace.drone}: {trace.outcome} after {trace.steps} steps, "
               f"reward {trace.reward:.0f}, actions {' '.join(map(str, trace.actions))}", flush=True)
-    print(summarize(world, args.episodes, traces).summary(), flush=True)
-    return 0

@@ -44,12 +44,18 @@ def main(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     with trainer:
-        print(f"run directory: {trainer.run_dir}", file=sys.stderr)
+        resumed = trainer.episode > 0
+        print(f"run directory: {trainer.run_dir}" + (f" (resuming after episode {trainer.episode})"
+                                                     if resumed else ""), file=sys.stderr)
         result = trainer.train()
-        print(f"{result.episodes} episodes ({result.global_step} steps) in {result.wall_time_s:.1f} s this session; "
-              f"rolling success {result.success_rate:.0%}")
+        print(f"this session: {result.episodes_this_session} episodes ({result.steps_this_session} steps) in "
+              f"{result.wall_time_s:.1f} s; run total: {result.episodes} of {trainer.config.episodes} episodes "
+              f"({result.global_step} steps); success while exploring (last {trainer.config.success_window} "
+              f"drone-episodes): {result.success_rate:.0%}")
         if trainer.stopped_early and trainer.last_eval is not None:
-            print(f"stopped early: greedy success reached {trainer.config.stop_on_success:.0%}")
+            baseline = trainer.constant_baseline()
+            print(f"stopped early: greedy success reached {trainer.config.stop_on_success:.0%} and beats the best "
+                  f"constant action ({baseline.action}: {baseline.success_rate:.0%})")
             print("greedy evaluation: " + trainer.last_eval.summary())
         elif result.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0:
             print("greedy evaluation: " + trainer.evaluate().summary())

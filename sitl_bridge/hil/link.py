@@ -172,7 +172,8 @@ class HilLink:
             self._server.close()
             raise HilError(
                 f"vehicle {instance}: cannot listen on {host}:{self.port} ({exc.strerror}); "
-                "is another simulator using this instance?"
+                "is another simulator using this instance? Pick free ones with --instance-base "
+                "(sitl-bridge run) or -i (sitl-bridge stub)"
             ) from None
         self._server.listen(1)
         self._server.setblocking(False)

@@ -10,6 +10,7 @@ import numpy as np
 
 from sitl_bridge.rl.drones_env import DronesEnv, EnvFactory, scenario_env_factory
 from sitl_bridge.rl.policy import policy_from_checkpoint
+from sitl_bridge.rl.progress import Progress
 from sitl_bridge.rl.rollout import Trace, eval_seeds, rollout
 
 
@@ -54,25 +55,56 @@ def summarize(world: str, episodes: int, traces: list[Trace]) -> EvalResult:
 
 
 def evaluate_policy(policy: Callable[[np.ndarray], int], env_factory: EnvFactory, *, world: str,
-                    episodes: int, seed: int = 0) -> tuple[EvalResult, list[Trace]]:
+                    episodes: int, seed: int = 0, progress: bool = False) -> tuple[EvalResult, list[Trace]]:
     """Fly `policy` greedily for `episodes` episodes on fresh seeds, in a new env."""
     env = DronesEnv(env_factory(seed))
     try:
-        return evaluate_on(env, policy, world=world, episodes=episodes, seed=seed)
+        return evaluate_on(env, policy, world=world, episodes=episodes, seed=seed, progress=progress)
     finally:
         env.close()
 
 
 def evaluate_on(env: DronesEnv, policy: Callable[[np.ndarray], int], *, world: str, episodes: int,
-                seed: int = 0) -> tuple[EvalResult, list[Trace]]:
-    """Fly `policy` greedily for `episodes` episodes on evaluation seeds in an open env."""
-    traces = rollout(env, policy, eval_seeds(seed, episodes))
+                seed: int = 0, progress: bool = False, desc: str = "evaluation") -> tuple[EvalResult, list[Trace]]:
+    """Fly `policy` greedily for `episodes` episodes on evaluation seeds in an open env
+    (with `progress`, a bar or periodic lines on stderr)."""
+    with Progress(episodes, desc, enabled=progress) as bar:
+        def count(traces: list[Trace]) -> None:
+            bar.update(1, success=f"{np.mean([t.outcome == 'goal' for t in traces]):.0%}")
+
+        traces = rollout(env, policy, eval_seeds(seed, episodes), on_episode=count)
     return summarize(world, episodes, traces), traces
 
 
+@dataclass(frozen=True)
+class ConstantBaseline:
+    """The best policy that always picks one action: what a learned policy must beat."""
+
+    action: int
+    success_rate: float
+    per_action: list[float]
+    """Greedy success of each constant action, by action code."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def constant_action_baseline(env: DronesEnv, *, world: str, episodes: int, seed: int = 0,
+                             progress: bool = False) -> ConstantBaseline:
+    """Success of every constant-action policy on the evaluation episodes of `evaluate_on`
+    (same seeds), and the best of them. A scenario that a constant action solves needs no learning."""
+    rates = []
+    for action in range(env.n_actions):
+        result, _ = evaluate_on(env, lambda _obs, a=action: a, world=world, episodes=episodes, seed=seed,
+                                progress=progress, desc=f"constant action {action}")
+        rates.append(result.success_rate)
+    best = int(np.argmax(rates))
+    return ConstantBaseline(best, rates[best], rates)
+
+
 def evaluate_checkpoint(checkpoint: str | Path, world: str | Path, *, episodes: int, autopilot: str = "direct",
-                        seed: int = 0) -> tuple[EvalResult, list[Trace]]:
+                        seed: int = 0, progress: bool = False) -> tuple[EvalResult, list[Trace]]:
     """Greedy evaluation of a checkpoint (file or run directory) in the scenario `world`."""
     policy = policy_from_checkpoint(checkpoint)
     return evaluate_policy(policy, scenario_env_factory(world, autopilot), world=str(world),
-                           episodes=episodes, seed=seed)
+                           episodes=episodes, seed=seed, progress=progress)

@@ -1,19 +1,38 @@
-"""Learning curves of a run (from its episode log): reward, success rate, epsilon, loss."""
+"""Learning-curve figure of one run, or of several runs (seeds) as mean and 95 % band.
+
+Four panels, each with its units:
+
+1. greedy success over training: the periodic greedy evaluations (`evals.jsonl`, written every
+   `eval_every` episodes), the measure of what the network has learned; exploration success is
+   not shown here, since it falls as epsilon decays and reads as getting worse;
+2. training outcome shares (goal, crash, out, timeout), stacked, as rolling means;
+3. reward per term (and the total), rolling means;
+4. epsilon (left axis) and the mean TD loss (right axis, log scale).
+"""
 
 from __future__ import annotations
 
 import json
 from collections import defaultdict
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from sitl_bridge.rl.episode_log import read_records
-from sitl_bridge.rl.run_dir import EPISODES_FILE, EVAL_FILE, EVALS_FILE
+from sitl_bridge.rl.run_dir import EPISODES_FILE, EVALS_FILE, RUN_FILE
+
+OUTCOMES = ("goal", "crash", "out", "timeout")
+OUTCOME_COLOURS = {"goal": "C2", "crash": "C3", "out": "C1", "timeout": "0.6"}
+
+
+class NotARun(ValueError):
+    """The folder given is not a run directory, or its log holds nothing to plot."""
 
 
 def per_episode(records: list[dict]) -> dict[str, np.ndarray]:
-    """Episode-level series (drones averaged): episode, reward, success, epsilon, loss, steps."""
+    """Episode-level series (drones averaged): episode, reward, outcome shares, epsilon, loss,
+    steps, and `term:<name>` for every reward term."""
     grouped: dict[int, list[dict]] = defaultdict(list)
     for record in records:
         grouped[record["episode"]].append(record)
@@ -22,16 +41,20 @@ def per_episode(records: list[dict]) -> dict[str, np.ndarray]:
     def series(fn) -> np.ndarray:  # noqa: ANN001 - small local helper
         return np.array([fn(grouped[e]) for e in episodes], dtype=float)
 
-    return {
+    data = {
         "episode": np.array(episodes, dtype=float),
         "reward": series(lambda rs: np.mean([r["reward"] for r in rs])),
-        "success": series(lambda rs: np.mean([r["outcome"] == "goal" for r in rs])),
-        "crash": series(lambda rs: np.mean([r["outcome"] == "crash" for r in rs])),
         "epsilon": series(lambda rs: rs[0]["epsilon"]),
         "loss": series(lambda rs: np.nan if rs[0]["mean_loss"] is None else rs[0]["mean_loss"]),
         "steps": series(lambda rs: np.mean([r["steps"] for r in rs])),
         "wall_time_s": series(lambda rs: rs[0]["wall_time_s"]),
     }
+    for outcome in OUTCOMES:
+        data[outcome] = series(lambda rs, o=outcome: np.mean([r["outcome"] == o for r in rs]))
+    data["success"] = data["goal"]
+    for term in sorted({t for r in records for t in r.get("reward_terms", {})}):
+        data[f"term:{term}"] = series(lambda rs, t=term: np.mean([r.get("reward_terms", {}).get(t, 0.0) for r in rs]))
+    return data
 
 
 def rolling_mean(values: np.ndarray, window: int) -> np.ndarray:
@@ -45,59 +68,136 @@ def rolling_mean(values: np.ndarray, window: int) -> np.ndarray:
         return (sums[end] - sums[start]) / (counts[end] - counts[start])
 
 
-def _read_evals(run_dir: Path) -> list[dict]:
+def read_evals(run_dir: Path) -> list[dict]:
+    """The run's greedy evaluations in order (lines that do not parse are skipped)."""
     path = run_dir / EVALS_FILE
-    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.exists() else []
+    evals = []
+    if path.exists():
+        for line in path.read_text(errors="replace").splitlines():
+            try:
+                evals.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+    return evals
 
 
-def plot_run(run_dir: str | Path, out: str | Path | None = None, window: int = 50) -> Path:
-    """Write the run's learning curves as a PNG (default RUN_DIR/learning_curves.png)."""
+def eval_series(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(episodes trained, greedy success) of every evaluation of a run."""
+    evals = read_evals(run_dir)
+    return (np.array([e["after_episodes"] for e in evals], dtype=float),
+            np.array([e["success_rate"] for e in evals], dtype=float))
+
+
+def mean_and_band(curves: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and 95 % confidence band (Student t) across runs, point by point; the curves are
+    cut to the shortest. With one run the band is the curve itself."""
+    length = min(len(c) for c in curves)
+    stacked = np.vstack([np.asarray(c[:length], dtype=float) for c in curves])
+    mean = np.nanmean(stacked, axis=0)
+    if len(curves) < 2:
+        return mean, mean, mean
+    from scipy import stats
+
+    counts = np.sum(np.isfinite(stacked), axis=0)
+    sem = np.nanstd(stacked, axis=0, ddof=1) / np.sqrt(np.maximum(counts, 1))
+    half = stats.t.ppf(0.975, np.maximum(counts - 1, 1)) * sem
+    return mean, mean - half, mean + half
+
+
+def _load(run_dir: Path) -> dict[str, np.ndarray]:
+    if not (run_dir / RUN_FILE).is_file():
+        raise NotARun(f"{run_dir}: not a run directory (no {RUN_FILE})")
+    data = per_episode(read_records(run_dir / EPISODES_FILE))
+    if len(data["episode"]) == 0:
+        raise NotARun(f"{run_dir}: the episode log is empty, nothing to plot")
+    return data
+
+
+def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, window: int = 50) -> Path:
+    """Write the learning-curve figure of one run, or of several runs (mean and 95 % band
+    across them), as a PNG (default: RUN_DIR/learning_curves.png of the first run)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    run_dir = Path(run_dir)
-    data = per_episode(read_records(run_dir / EPISODES_FILE))
-    if len(data["episode"]) == 0:
-        raise ValueError(f"{run_dir}: the episode log is empty, nothing to plot")
-    x = data["episode"]
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharex=True)
+    dirs = [Path(d) for d in run_dirs]
+    runs = [_load(d) for d in dirs]
+    shortest = min(len(r["episode"]) for r in runs)
+    window = max(1, min(window, shortest))
+    x = runs[0]["episode"][:shortest] + 1  # episodes trained so far
+    several = len(runs) > 1
+    smooth = f"rolling mean over {window} episode{'s' if window > 1 else ''}"
+
+    def draw(ax, curves: list[np.ndarray], xs: np.ndarray, colour: str, label: str, **style) -> None:
+        mean, low, high = mean_and_band(curves)
+        ax.plot(xs[:len(mean)], mean, color=colour, label=label, **style)
+        if several:
+            ax.fill_between(xs[:len(mean)], low, high, color=colour, alpha=0.2, lw=0)
+
+    fig, axes = plt.subplots(2, 2, figsize=(13, 8.5), sharex=True)
+
     ax = axes[0, 0]
-    ax.plot(x, data["reward"], color="0.75", lw=0.6, label="episode")
-    ax.plot(x, rolling_mean(data["reward"], window), color="C0", label=f"mean of {window}")
-    ax.set_ylabel("cumulative reward")
-    ax.legend(loc="lower right")
-    ax = axes[0, 1]
-    ax.plot(x, rolling_mean(data["success"], window), color="C2", label="goal")
-    ax.plot(x, rolling_mean(data["crash"], window), color="C3", label="crash")
-    evals = _read_evals(run_dir)
-    if evals:
-        ax.plot([e["after_episodes"] - 1 for e in evals], [e["success_rate"] for e in evals], "o",
-                color="k", ms=4, label="greedy eval")
+    evals = [eval_series(d) for d in dirs]
+    if all(len(e[0]) for e in evals):
+        draw(ax, [e[1] for e in evals], evals[0][0], "k", "greedy success" + (" (mean, 95 % band)" if several else ""),
+             marker="o", ms=3)
+    else:
+        ax.text(0.5, 0.5, "no greedy evaluations logged\n(train: eval_every)", ha="center", va="center",
+                transform=ax.transAxes, color="0.4")
     ax.set_ylim(-0.02, 1.02)
-    ax.set_ylabel(f"rate (last {window} episodes)")
-    ax.legend(loc="center right")
+    ax.set_ylabel("greedy success rate (share of drone-episodes)")
+    ax.set_title("greedy evaluation during training", fontsize=10)
+    ax.legend(loc="lower right", fontsize=8)
+
+    ax = axes[0, 1]
+    shares = {o: mean_and_band([rolling_mean(r[o][:shortest], window) for r in runs])[0] for o in OUTCOMES}
+    ax.stackplot(x, [shares[o] for o in OUTCOMES], labels=OUTCOMES,
+                 colors=[OUTCOME_COLOURS[o] for o in OUTCOMES], alpha=0.85)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel(f"training outcome share ({smooth})")
+    ax.set_title("training episodes (with exploration)", fontsize=10)
+    ax.legend(loc="upper left", fontsize=8, ncol=4)
+
     ax = axes[1, 0]
-    ax.plot(x, data["epsilon"], color="C1")
-    ax.set_ylabel("epsilon")
-    ax.set_xlabel("episode")
+    terms = sorted({k for r in runs for k in r if k.startswith("term:")})
+    draw(ax, [rolling_mean(r["reward"][:shortest], window) for r in runs], x, "k", "total", lw=2)
+    for i, term in enumerate(terms):
+        curves = [rolling_mean(r.get(term, np.zeros(shortest))[:shortest], window) for r in runs]
+        draw(ax, curves, x, f"C{i % 10}", term.split(":", 1)[1])
+    ax.set_ylabel(f"reward per episode ({smooth})")
+    ax.set_xlabel("episodes trained")
+    ax.set_title("reward per term", fontsize=10)
+    ax.legend(loc="best", fontsize=8)
+
     ax = axes[1, 1]
-    loss = data["loss"]
-    if np.any(np.isfinite(loss) & (loss > 0)):
-        ax.semilogy(x, loss, color="0.75", lw=0.6)
-        ax.semilogy(x, rolling_mean(loss, window), color="C4")
-    ax.set_ylabel("mean loss")
-    ax.set_xlabel("episode")
-    title = run_dir.name
-    eval_path = run_dir / EVAL_FILE
-    if eval_path.exists():
-        result = json.loads(eval_path.read_text())
-        title += f"\ngreedy: success {result['success_rate']:.0%}, crash {result['crash_rate']:.0%} " \
-                 f"({result['episodes']} episodes after {result.get('after_episodes', '?')})"
-    fig.suptitle(title, fontsize=10)
+    draw(ax, [r["epsilon"][:shortest] for r in runs], x, "C1", "epsilon (exploration)")
+    ax.set_ylim(0, 1.02)
+    ax.set_ylabel("epsilon (probability of a random action)")
+    ax.set_xlabel("episodes trained")
+    loss_ax = ax.twinx()
+    losses = [rolling_mean(r["loss"][:shortest], window) for r in runs]
+    if any(np.any(np.isfinite(c) & (c > 0)) for c in losses):
+        mean, low, high = mean_and_band(losses)
+        loss_ax.semilogy(x, mean, color="C4", label=f"TD loss ({smooth})")
+        if several:
+            loss_ax.fill_between(x, np.clip(low, 1e-12, None), high, color="C4", alpha=0.2, lw=0)
+    loss_ax.set_ylabel("mean TD loss per update (log)")
+    handles = ax.get_legend_handles_labels()
+    loss_handles = loss_ax.get_legend_handles_labels()
+    ax.legend(handles[0] + loss_handles[0], handles[1] + loss_handles[1], loc="upper right", fontsize=8)
+    ax.set_title("exploration and loss", fontsize=10)
+
+    title = dirs[0].name if not several else f"{len(dirs)} runs: " + ", ".join(d.name for d in dirs[:4]) + \
+        (" ..." if len(dirs) > 4 else "")
+    fig.suptitle(title + f"  ({shortest} episodes)", fontsize=10)
     fig.tight_layout()
-    out = Path(out) if out else run_dir / "learning_curves.png"
+    out = Path(out) if out else dirs[0] / "learning_curves.png"
     fig.savefig(out, dpi=100)
     plt.close(fig)
     return out
+
+
+def plot_run(run_dir: str | Path, out: str | Path | None = None, window: int = 50) -> Path:
+    """The learning-curve figure of one run (see `plot_runs`)."""
+    return plot_runs([run_dir], out, window)

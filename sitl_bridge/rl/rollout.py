@@ -38,8 +38,10 @@ def _position(info: dict[str, Any]) -> list[float] | None:
     return None if value is None else [float(v) for v in np.asarray(value).reshape(-1)]
 
 
-def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable[int]) -> list[Trace]:
-    """One episode per seed, every drone acting with `policy`; one Trace per drone per episode."""
+def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable[int],
+            on_episode: Callable[[list[Trace]], None] | None = None) -> list[Trace]:
+    """One episode per seed, every drone acting with `policy`; one Trace per drone per episode.
+    `on_episode(traces)` runs after each episode with that episode's traces (progress, logs)."""
     traces: list[Trace] = []
     for episode, seed in enumerate(seeds):
         obs, infos = env.reset(seed)
@@ -65,6 +67,8 @@ def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable
                     trace.outcome = episode_outcome(info, result.terminated[i], result.truncated[i])
             obs.update(result.obs)
         traces.extend(mine.values())
+        if on_episode is not None:
+            on_episode(list(mine.values()))
     return traces
 
 

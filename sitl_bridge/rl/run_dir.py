@@ -1,19 +1,28 @@
 """Run directories: `{world}__{experiment}__{seed}__{timestamp}` holding everything of one run.
 
-    run.json            what the run is: world file, autopilot, seed, init-from (written once)
+    run.json            what the run is: world file, autopilot, seed, init-from, and its provenance
+                        (creation time, package version, git commit, command line, platform)
+    scenario.yaml       a copy of the scenario file the run trains in: the run's own world, used by
+                        resume, eval, rules, plot and `run --policy` from any working directory
     config.yaml         the resolved hyperparameters (TrainConfig)
     episodes.jsonl      the episode log (one record per drone per episode)
     checkpoints/        ckpt_0000042.safetensors ... (newest few kept)
     replay/             append-only replay shards + format.json
     tb/                 TensorBoard events
     eval.json           the latest greedy evaluation (evals.jsonl: all of them, during training too)
+    baseline.json       the best constant-action policy's greedy success (what "solved" must beat)
 """
 
 from __future__ import annotations
 
 import json
+import platform
+import shlex
+import shutil
+import subprocess
+import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import yaml
@@ -23,6 +32,7 @@ from sitl_bridge.rl.atomic import atomic_write_json, atomic_write_text
 from sitl_bridge.rl.config import TrainConfig, parse_train_node
 
 RUN_FILE = "run.json"
+SCENARIO_FILE = "scenario.yaml"
 CONFIG_FILE = "config.yaml"
 EPISODES_FILE = "episodes.jsonl"
 CHECKPOINTS = "checkpoints"
@@ -30,6 +40,7 @@ REPLAY = "replay"
 TENSORBOARD = "tb"
 EVAL_FILE = "eval.json"
 EVALS_FILE = "evals.jsonl"
+BASELINE_FILE = "baseline.json"
 
 
 @dataclass(frozen=True)
@@ -43,6 +54,43 @@ class RunSpec:
     init_from: str | None = None
     """Checkpoint the network started from (curriculum), if any."""
     created: str = ""
+    """Creation time, ISO 8601 UTC."""
+    version: str = ""
+    """sitl-bridge version that created the run."""
+    git_commit: str | None = None
+    """Commit of the sitl-bridge source tree, when it is a git checkout (`+dirty` if modified)."""
+    command: str = ""
+    """The full command line that created the run."""
+    platform: str = ""
+    """Python, torch and operating system."""
+
+    def with_provenance(self) -> RunSpec:
+        """This spec with creation time, version, commit, command line and platform filled in."""
+        import torch
+
+        from sitl_bridge import __version__
+
+        return RunSpec(**{**asdict(self),
+                          "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                          "version": __version__, "git_commit": source_commit(),
+                          "command": shlex.join(sys.argv),
+                          "platform": f"python {platform.python_version()}, torch {torch.__version__}, "
+                                      f"{platform.platform()}"})
+
+
+def source_commit() -> str | None:
+    """Git commit of the package's source tree, or None (installed copy, no git)."""
+    root = Path(__file__).resolve().parents[2]
+    if not (root / ".git").exists():
+        return None
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
+                              text=True, timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head + ("+dirty" if dirty else "")
 
 
 def run_dir_name(world: str | Path, experiment: str, seed: int, timestamp: float | None = None) -> str:
@@ -59,7 +107,13 @@ def create_run_dir(out: str | Path, spec: RunSpec, config: TrainConfig) -> Path:
         path = base.with_name(f"{base.name}-{suffix}")
         suffix += 1
     path.mkdir(parents=True)
-    write_run_files(path, spec, config)
+    try:
+        if Path(spec.world).is_file():  # (a run of an env built in code names no file)
+            atomic_write_text(path / SCENARIO_FILE, Path(spec.world).read_text(encoding="utf-8"))
+        write_run_files(path, spec.with_provenance(), config)
+    except BaseException:
+        shutil.rmtree(path, ignore_errors=True)  # a failed start leaves no run directory
+        raise
     return path
 
 
@@ -74,7 +128,34 @@ def read_run_files(path: str | Path) -> tuple[RunSpec, TrainConfig]:
     path = Path(path)
     if not (path / RUN_FILE).is_file():
         raise ConfigError(f"{path}: not a run directory (no {RUN_FILE})")
-    spec = RunSpec(**json.loads((path / RUN_FILE).read_text()))
+    known = {f.name for f in fields(RunSpec)}
+    spec = RunSpec(**{k: v for k, v in json.loads((path / RUN_FILE).read_text()).items() if k in known})
     source = str(path / CONFIG_FILE)
     config = parse_train_node(Node(yaml.safe_load((path / CONFIG_FILE).read_text()), source, "train"))
     return spec, config
+
+
+def run_dir_of(path: str | Path) -> Path | None:
+    """The run directory holding `path` (a run directory, its checkpoints folder or a checkpoint
+    file in it), or None when `path` is not inside one."""
+    path = Path(path)
+    for candidate in (path, path.parent, path.parent.parent):
+        if (candidate / RUN_FILE).is_file():
+            return candidate
+    return None
+
+
+def run_scenario(path: str | Path) -> Path:
+    """The scenario file of the run holding `path`: its own copy (`scenario.yaml`), or, for runs
+    made before copies were kept, the world file it names (which must still exist)."""
+    run_dir = run_dir_of(path)
+    if run_dir is None:
+        raise ConfigError(f"{path}: not inside a run directory (no {RUN_FILE}); pass --world")
+    if (run_dir / SCENARIO_FILE).is_file():
+        return run_dir / SCENARIO_FILE
+    spec, _ = read_run_files(run_dir)
+    world = Path(spec.world)
+    if not world.is_file():
+        raise ConfigError(f"{run_dir}: has no {SCENARIO_FILE} and its world {spec.world} is not "
+                          "readable from here; pass --world")
+    return world

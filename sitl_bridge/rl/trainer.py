@@ -15,6 +15,7 @@ moment loses at most the episode in flight.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import logging
@@ -44,8 +45,14 @@ from sitl_bridge.rl.drones_env import (
     sim_time_s,
 )
 from sitl_bridge.rl.episode_log import EpisodeLog, EpisodeRecord, read_records
-from sitl_bridge.rl.evaluate import EvalResult, evaluate_on
+from sitl_bridge.rl.evaluate import (
+    ConstantBaseline,
+    EvalResult,
+    constant_action_baseline,
+    evaluate_on,
+)
 from sitl_bridge.rl.metrics import TensorBoardLog
+from sitl_bridge.rl.progress import Progress
 from sitl_bridge.rl.replay import ReplayBuffer
 from sitl_bridge.rl.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
 
@@ -73,7 +80,11 @@ class TrainResult:
 
     run_dir: Path
     episodes: int
+    """Episodes of the whole run so far (earlier sessions of a resumed run included)."""
     global_step: int
+    """Env steps of the whole run so far."""
+    episodes_this_session: int
+    steps_this_session: int
     wall_time_s: float
     """Wall time of this call (not of earlier sessions of a resumed run)."""
     success_rate: float
@@ -149,7 +160,7 @@ class Trainer:
             rd.write_run_files(run_dir, spec, config)
         if env_factory is None:
             from sitl_bridge.rl.drones_env import scenario_env_factory
-            env_factory = scenario_env_factory(spec.world, spec.autopilot)
+            env_factory = scenario_env_factory(rd.run_scenario(run_dir), spec.autopilot)
         for stale in [*run_dir.glob(".*.tmp*"), *run_dir.glob("*/.*.tmp*")]:
             stale.unlink()  # half-written temp files of a killed session (never renamed into place)
         trainer = cls(run_dir, spec, config, env_factory, **kwargs)
@@ -252,38 +263,54 @@ class Trainer:
     def train(self, on_episode: Callable[[list[EpisodeRecord]], bool | None] | None = None) -> TrainResult:
         """Train until `config.episodes` episodes are done. `on_episode(records)` runs after each
         checkpointed episode; returning False stops early (resumable)."""
-        from tqdm import tqdm
-
         start = time.perf_counter()
-        first_episode = self.episode
-        greedy = "-"
-        bar = tqdm(total=self.config.episodes, initial=self.episode, unit="ep", dynamic_ncols=True,
-                   disable=not self.progress, desc=Path(self.spec.world).stem)
+        first_episode, first_step = self.episode, self.global_step
+        bar = Progress(self.config.episodes, Path(self.spec.world).stem, initial=self.episode,
+                       enabled=self.progress)
         try:
             while self.episode < self.config.episodes:
                 records = self.run_episode()
                 self.save_checkpoint()
                 self._log_tensorboard(records)
-                elapsed = time.perf_counter() - start
-                bar.update(1)
+                bar.update(1, explore_success=f"{self.success_rate():.2f}", epsilon=f"{records[0].epsilon:.3f}")
                 if (self.config.eval_every and self.config.eval_episodes
                         and self.episode % self.config.eval_every == 0 and self.episode < self.config.episodes):
-                    success = self.evaluate().success_rate
-                    greedy = f"{success:.0%}"
-                    if self.config.stop_on_success and success >= self.config.stop_on_success:
+                    result = self.evaluate()
+                    bar.update(0, greedy=f"{result.success_rate:.0%}")
+                    if self.solved(result):
                         self.stopped_early = True
                         break
-                bar.set_postfix(eps_s=f"{(self.episode - first_episode) / max(elapsed, 1e-9):.2f}",
-                                success=f"{self.success_rate():.2f}", epsilon=f"{records[0].epsilon:.3f}",
-                                greedy=greedy)
                 if on_episode is not None and on_episode(records) is False:
                     break
         finally:
             bar.close()
             if self._writer is not None:
                 self._writer.flush()
-        return TrainResult(self.run_dir, self.episode, self.global_step,
-                           time.perf_counter() - start, self.success_rate())
+        return TrainResult(self.run_dir, self.episode, self.global_step, self.episode - first_episode,
+                           self.global_step - first_step, time.perf_counter() - start, self.success_rate())
+
+    def solved(self, result: EvalResult) -> bool:
+        """A greedy evaluation solves the scenario when it reaches `stop_on_success` and beats
+        the best constant-action policy on the same episodes (else nothing was learned)."""
+        if not self.config.stop_on_success or result.success_rate < self.config.stop_on_success:
+            return False
+        return result.success_rate > self.constant_baseline().success_rate
+
+    def constant_baseline(self) -> ConstantBaseline:
+        """The best constant-action policy's greedy success on the evaluation episodes, measured
+        once per run and kept in the run directory (`baseline.json`)."""
+        path = self.run_dir / rd.BASELINE_FILE
+        if path.exists():
+            with contextlib.suppress(ValueError, KeyError, TypeError):
+                return ConstantBaseline(**json.loads(path.read_text()))
+        baseline = constant_action_baseline(self.env, world=self.spec.world, episodes=self.config.eval_episodes,
+                                            seed=self.spec.seed, progress=self.progress)
+        atomic_write_json(path, baseline.to_dict())
+        if baseline.success_rate >= self.config.stop_on_success:
+            self.warn(f"always choosing action {baseline.action} already succeeds in "
+                      f"{baseline.success_rate:.0%} of the evaluation episodes: this scenario needs no "
+                      "learning, so training runs its whole budget")
+        return baseline
 
     def evaluate(self, episodes: int | None = None) -> EvalResult:
         """Greedy evaluation of the current network in the training scenario: appended to
@@ -291,7 +318,8 @@ class Trainer:
         episodes = self.config.eval_episodes if episodes is None else episodes
         start = time.perf_counter()
         result, _ = evaluate_on(self.env, lambda obs: int(np.argmax(self.agent.q_values(obs))),
-                                world=self.spec.world, episodes=episodes, seed=self.spec.seed)
+                                world=self.spec.world, episodes=episodes, seed=self.spec.seed,
+                                progress=self.progress, desc="greedy evaluation")
         record = {**result.to_dict(), "after_episodes": self.episode, "global_step": self.global_step,
                   "wall_time_s": time.perf_counter() - start}
         atomic_write_json(self.run_dir / rd.EVAL_FILE, record)
