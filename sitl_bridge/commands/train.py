@@ -76,6 +76,9 @@ def _build(args: argparse.Namespace) -> Trainer:
         return Trainer.resume(args.resume, episodes=overrides["episodes"], progress=progress)
     if not args.world:
         raise ConfigError("command line: WORLD: expected a scenario file (or --resume RUN_DIR), got nothing")
+    from sitl_bridge.rl.scenario_file import check_scenario_file
+
+    check_scenario_file(args.world, need_task=True)  # every section, before a run directory exists
     config = load_train_config(args.world, overrides)
     spec = RunSpec(world=args.world, autopilot=args.autopilot, seed=args.seed, init_from=args.init_from)
     return Trainer.start(args.out, spec, config, scenario_env_factory(args.world, args.autopilot),

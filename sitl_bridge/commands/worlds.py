@@ -1,4 +1,5 @@
-"""`sitl-bridge worlds check FILE...`: validate scenario files, one summary line per world."""
+"""`sitl-bridge worlds check FILE...`: validate scenario files (world:, task: and train:, and the
+geometry's sense), one summary line per file or a one-line error."""
 
 from __future__ import annotations
 
@@ -20,12 +21,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def check_main(args: argparse.Namespace) -> int:
     """Validate every file; errors are one line each on stderr; exit status 1 if any failed."""
-    from sitl_bridge.world import load_world
+    from sitl_bridge.rl.scenario_file import check_scenario_file
 
     status = 0
     for path in args.files:
         try:
-            world = load_world(path)
+            world = check_scenario_file(path)
             if args.build:
                 _build(world)
         except ConfigError as exc:

@@ -215,6 +215,24 @@ FEATURES: dict[str, Callable[[Node, ScenarioLimits], Feature]] = {
 }
 
 
+FEATURE_MEANINGS: dict[str, tuple[str, str]] = {
+    "position": ("x, y, z (world ENU)", "m"),
+    "orientation": ("roll, pitch, yaw (world ENU)", "rad"),
+    "velocity": ("vx, vy, vz (world ENU)", "m/s"),
+    "goal_position": ("the drone's goal point x, y, z", "m"),
+    "goal_offset": ("goal minus position", "m"),
+    "own_id": ("drone index", "-"),
+    "own_priority": ("own priority rank, scaled (1 = highest)", "-"),
+    "other_priority": ("the other drones' priority ranks", "-"),
+    "transponder": ("per other drone: x, y, z, vx, vy, vz", "m, m/s"),
+    "line_distance": ("distance from the start-goal line", "m"),
+    "lidar": ("ray distances (range when nothing is hit)", "m"),
+    "lidar_flags": ("near, crash flags of the lidar", "0/1"),
+    "dummy": ("zeros (input padding for transfer)", "-"),
+}
+"""What each feature's values are and their unit (the scenario manual's table)."""
+
+
 def parse_observation(node: Node, limits: ScenarioLimits) -> list[Feature]:
     """Parse the `observation:` list into features, in order."""
     features = []

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from sitl_bridge.client.actions import NUM_ACTIONS
+from sitl_bridge.envs.features import FEATURE_MEANINGS
 from sitl_bridge.envs.scenario import Scenario, load_scenario
+
+ACTION_MEANINGS = {
+    "world": ("east", "west", "south", "north", "down", "up", "toward the goal", "hover"),
+    "goal": ("right (of the start-goal direction)", "left", "back (away from the goal)",
+             "forward (toward the goal's side)", "down", "up", "toward the goal", "hover"),
+}
+"""Action codes 0-7 in each action frame (`envs/actions.py` applies them)."""
 
 
 def _bounds(values: np.ndarray) -> str:
@@ -23,17 +32,25 @@ def describe(scenario: Scenario) -> str:
     a = task.action
     lines += [
         "## Actions",
-        f"Discrete(8), {a.speed_m_s:g} m/s for {a.duration_s:g} s"
-        + (f" then {a.zero_velocity_s:g} s hover" if a.zero_velocity_s else "")
-        + f", frame `{a.frame}`" + (f", swapped for drones {list(a.swap_drones)}" if a.swap_drones else ""),
+        f"Discrete({NUM_ACTIONS}), each a velocity of {a.speed_m_s:g} m/s held for {a.duration_s:g} s of "
+        "simulated time" + (f" then {a.zero_velocity_s:g} s hover" if a.zero_velocity_s else "")
+        + f", frame `{a.frame}`" + (f"; for drones {list(a.swap_drones)} 0/1 and 2/3 are swapped"
+                                     if a.swap_drones else ""),
+        "",
+        "| action | meaning |",
+        "|---|---|",
+    ]
+    lines += [f"| {code} | {meaning} |" for code, meaning in enumerate(ACTION_MEANINGS[a.frame])]
+    lines += [
         "",
         f"## Observation (per drone, {task.observation_size} values, float32)",
-        "| index | feature | size | low | high |",
-        "|---|---|---|---|---|",
+        "| index | feature | size | values | unit | low | high |",
+        "|---|---|---|---|---|---|---|",
     ]
     index = 0
     for f in task.observation:
-        lines.append(f"| {index}..{index + f.size - 1} | `{f.name}` | {f.size} | "
+        meaning, unit = FEATURE_MEANINGS.get(f.name, ("", ""))
+        lines.append(f"| {index}..{index + f.size - 1} | `{f.name}` | {f.size} | {meaning} | {unit} | "
                      f"{_bounds(f.low)} | {_bounds(f.high)} |")
         index += f.size
     lines += ["", "## Rewards", "| term | scale |", "|---|---|"]

@@ -102,6 +102,10 @@ def _parse_action(node: Node, num_drones: int) -> ActionConfig:
     swap: list[int] = []
     for item in node.get("swap_drones", []).list():
         swap.append(item.integer(minimum=0, maximum=num_drones - 1))
+    if swap and node.get("frame", "world").value == "goal":
+        # The goal frame already turns each drone's actions with its own travel direction;
+        # swapping on top would mirror them again.
+        raise node.get("swap_drones").error("[] with `frame: goal` (swap_drones is for the world frame)")
     return ActionConfig(
         speed_m_s=node.get("speed_m_s", 1.0).number(positive=True, maximum=20.0),
         duration_s=node.get("duration_s", 1.0).number(positive=True, maximum=60.0),

@@ -138,7 +138,11 @@ class Trainer:
         if init is not None:
             config = _adopt_architecture(config, init[2]["network"])
         run_dir = rd.create_run_dir(out, spec, config)
-        trainer = cls(run_dir, spec, config, env_factory, **kwargs)
+        try:
+            trainer = cls(run_dir, spec, config, env_factory, **kwargs)
+        except BaseException:
+            shutil.rmtree(run_dir, ignore_errors=True)  # a failed start leaves no run directory
+            raise
         if init is not None:
             try:
                 trainer._load_init(*init)

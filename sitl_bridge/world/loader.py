@@ -30,6 +30,7 @@ from sitl_bridge.world.schema import (
     Workspace,
     World,
 )
+from sitl_bridge.world.sense import check_world_sense
 
 TOP_LEVEL_KEYS = frozenset({"world", "task", "train"})
 VEHICLE_MODELS = ("iris",)
@@ -113,9 +114,11 @@ def _parse_world(node: Node, base_dir: Path, task: Node | None, train: Node | No
             raise onode.get("randomize").get("along_path").get("vehicle").error(
                 "a vehicle that has a goal (the path runs from its spawn to its goal)"
             )
-    return World(name=name, source=node.source, description=description, home=home,
-                 physics=physics, workspace=workspace, ground=ground, vehicles=vehicles,
-                 goals=goals, obstacles=obstacles, task=task, train=train)
+    world = World(name=name, source=node.source, description=description, home=home,
+                  physics=physics, workspace=workspace, ground=ground, vehicles=vehicles,
+                  goals=goals, obstacles=obstacles, task=task, train=train)
+    check_world_sense(world, node)
+    return world
 
 
 def _unique(names: list[str], nodes: list[Node]) -> None:
@@ -242,6 +245,11 @@ def _parse_vehicle(node: Node, goal_index: dict[str, int]) -> VehicleSpec:
 def _parse_shape(node: Node, base_dir: Path, kind_key: str = "shape") -> Shape:
     """Shape fields of an obstacle or variant node (keys: shape, size, radius, height, opening, file, scale)."""
     kind = node.get(kind_key).string(SHAPE_KINDS)
+    given = set(node.mapping()) & (SHAPE_KEYS - {"shape", kind_key})
+    for key in sorted(given - set(SHAPE_KEYS_OF[kind])):
+        child = node.get(key)
+        raise ConfigError(f"{child.source}: {child.path}: a {kind} has no `{key}` (it would be ignored); "
+                          f"a {kind} takes {', '.join(SHAPE_KEYS_OF[kind])}")
     if kind in ("box", "wall"):
         size = _vec(node.get("size"), 3, positive=True)
         opening = _parse_opening(node.get("opening"), size) if kind == "wall" and node.has("opening") else None
@@ -276,6 +284,9 @@ def _parse_opening(node: Node, wall_size: tuple[float, ...]) -> Opening:
 
 
 SHAPE_KEYS = {"shape", "size", "radius", "height", "opening", "file", "scale"}
+SHAPE_KEYS_OF = {"box": ("size",), "wall": ("size", "opening"), "cylinder": ("radius", "height"),
+                 "sphere": ("radius",), "mesh": ("file", "scale", "size")}
+"""The shape keys each kind reads; any other shape key given to it is an error, not ignored."""
 
 
 def _parse_obstacle(node: Node, base_dir: Path, vehicle_index: dict[str, int]) -> Obstacle:
