@@ -126,6 +126,9 @@ def sys_status(ap: StubAutopilot) -> dict[str, Any]:
     if not (est.position_valid and est.attitude_valid):
         health &= ~(d.MAV_SYS_STATUS_PREARM_CHECK | d.MAV_SYS_STATUS_AHRS)
     cells = int(ap.params["BAT1_N_CELLS"]) if "BAT1_N_CELLS" in ap.params else 4
+    # Geofence "healthy" (not breached): the stub has no fence, so there is nothing to breach;
+    # without the bit ground stations such as MAVProxy report a fence breach.
+    health |= d.MAV_SYS_STATUS_GEOFENCE
     return dict(onboard_control_sensors_present=SENSORS_READY, onboard_control_sensors_enabled=SENSORS_READY,
                 onboard_control_sensors_health=health, load=200, voltage_battery=cells * BATTERY_CELL_MV,
                 current_battery=-1, battery_remaining=100)
