@@ -216,8 +216,10 @@ class Commander:
         if e is None or not e.position_valid or not self.armed or self.landed:
             return CommandResult.TEMPORARILY_REJECTED
         self._enter(HOLD)
-        self._hold_position = tuple(float(x) for x in position_ned_m)  # type: ignore[assignment]
-        if yaw_rad is not None:
+        # A non-finite component keeps the stopping point's (never let inf or NaN reach control).
+        self._hold_position = tuple(float(x) if _finite(x) else float(keep)  # type: ignore[assignment]
+                                    for x, keep in zip(position_ned_m, self._hold_position, strict=True))
+        if yaw_rad is not None and _finite(yaw_rad):
             self._yaw_sp = float(yaw_rad)
         return CommandResult.ACCEPTED
 

@@ -34,9 +34,10 @@ from sitl_bridge.ports import (
 
 from . import telemetry
 from .modes import CommandResult, system_id_for
+from .param_bounds import clamp_to_px4_range
 from .params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, decode_param_value
 from .telemetry import MessagePacker
-from .vec import quat_rotate
+from .vec import quat_rotate, wrap_pi
 
 if TYPE_CHECKING:
     from .autopilot import StubAutopilot
@@ -410,22 +411,31 @@ class MavlinkApi:
         lat0, lon0, alt0 = est.origin
         cur = est.position_ned_m
         lat, lon, alt = p[4], p[5], p[6]
-        north = math.radians(lat - lat0) * _EARTH_RADIUS_M if lat == lat else cur[0]
-        east = math.radians(lon - lon0) * _EARTH_RADIUS_M * math.cos(math.radians(lat0)) if lon == lon else cur[1]
-        if alt == alt:
+        # Like PX4's navigator: a non-finite field (NaN, +-inf) means "keep the current value";
+        # a latitude or longitude outside the globe is refused.
+        if (math.isfinite(lat) and abs(lat) > 90.0) or (math.isfinite(lon) and abs(lon) > 180.0):
+            return CommandResult.DENIED
+        north = math.radians(lat - lat0) * _EARTH_RADIUS_M if math.isfinite(lat) else cur[0]
+        east = (math.radians(lon - lon0) * _EARTH_RADIUS_M * math.cos(math.radians(lat0))
+                if math.isfinite(lon) else cur[1])
+        if math.isfinite(alt):
             home = self.autopilot.home
             alt_amsl = alt + (home.alt_amsl_m if home is not None else alt0) if relative_alt else alt
             down = alt0 - alt_amsl
         else:
             down = cur[2]
-        yaw = math.radians(p[3]) if p[3] == p[3] else None
+        yaw = wrap_pi(math.radians(p[3])) if math.isfinite(p[3]) else None
         return self.autopilot.reposition((north, east, down), yaw)
 
     def _set_message_interval(self, link: _Link, msgid_f: float, interval_f: float) -> CommandResult:
-        if msgid_f != msgid_f or int(msgid_f) not in telemetry.BUILDERS:
+        if not math.isfinite(msgid_f) or int(msgid_f) not in telemetry.BUILDERS:
             return CommandResult.DENIED
+        if interval_f != interval_f:
+            interval_f = 0.0  # NaN: not given, the default rate
+        if not math.isfinite(interval_f) and interval_f > 0:
+            return CommandResult.DENIED  # +inf: no such interval (-inf: < 0, stop the stream)
         msgid = int(msgid_f)
-        interval = int(interval_f) if interval_f == interval_f else 0
+        interval = -1 if interval_f < 0 else int(interval_f)
         if interval < 0:
             link.intervals_us.pop(msgid, None)
         elif interval == 0:
@@ -481,9 +491,14 @@ class MavlinkApi:
         if param_type not in (MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32):
             param_type = param.param_type
         value = decode_param_value(frame.payload, param_type)
-        with contextlib.suppress(ValueError):
-            table.set(param.name, value)
+        if math.isfinite(value):
+            bounded = clamp_to_px4_range(param.name, value)
+            if bounded != value:
+                log.warning("PARAM_SET %s = %g is outside PX4's range; set to %g", param.name, value, bounded)
+            table.set(param.name, bounded)
             self.stats.param_sets += 1
+        else:
+            log.warning("PARAM_SET %s = %g refused (not finite)", param.name, value)
         self._param_value(link, param)   # echo (the unchanged value when refused)
         self._flush(link)
 
