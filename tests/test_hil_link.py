@@ -7,6 +7,7 @@ real thing: pybullet physics, the sensor suite, `HilLink`, `Lockstep`.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import random
@@ -94,8 +95,8 @@ def rig(free_instance):
     sensors = [SensorSuite(world.home, seed=1)]
     link = HilLink(free_instance)
     peer = Peer(link.port)
+    peer.greet()  # a peer becomes the autopilot once it speaks (PX4's first bytes)
     assert link.accept(5.0)
-    peer.greet()
     lockstep = Lockstep(sim, sensors, [link], speed_factor=0, pumps=[peer.pump], actuator_timeout_s=5.0)
     yield sim, sensors, link, peer, lockstep
     peer.close()
@@ -249,6 +250,7 @@ def test_closed_connection_and_reconnect(rig):
     # after the simulation is reset in place.
     second = Peer(link.port)
     try:
+        second.greet()
         assert link.accept(5.0)
         sim.reset()
         lockstep.pumps[:] = [second.pump]
@@ -300,3 +302,60 @@ def test_parser_survives_garbage_and_any_split(garbage, chunk):
     # Every real frame is recovered, in order: a fake header in the garbage fails its CRC and
     # costs one byte of resynchronisation, never a real frame.
     assert times == list(range(1, len(frames) + 1))
+
+
+def _raw_connection(port: int) -> socket.socket:
+    return socket.create_connection(("127.0.0.1", port), timeout=5)
+
+
+def test_a_peer_sending_garbage_first_does_not_become_the_autopilot(free_instance, caplog):
+    with HilLink(free_instance) as link:
+        intruder = _raw_connection(link.port)
+        intruder.sendall(b"GET / HTTP/1.1\r\n" + bytes(range(256)) * 20)
+        assert not link.accept(0.3)  # garbage is no autopilot
+        real = Peer(link.port)
+        try:
+            real.greet()
+            with caplog.at_level(logging.WARNING):
+                assert link.accept(5.0)
+            assert link.heartbeat is not None and link.heartbeat.autopilot == mav.MAV_AUTOPILOT_PX4
+            assert link.peer == f"127.0.0.1:{real.sock.getsockname()[1]}"
+            assert any("dropped a connection" in r.getMessage() for r in caplog.records)
+            intruder.settimeout(2.0)
+            assert intruder.recv(1) == b""  # the intruder was disconnected
+        finally:
+            real.close()
+            intruder.close()
+
+
+def test_a_stale_idle_connection_is_never_taken(free_instance):
+    with HilLink(free_instance) as link:
+        first = Peer(link.port)
+        first.greet()
+        assert link.accept(5.0)
+        stale = _raw_connection(link.port)  # queued while the first autopilot runs, never speaks
+        link.disconnect()
+        first.close()
+        assert not link.accept(0.3)  # a reset's accept: the idle peer is not an autopilot
+        restarted = Peer(link.port)
+        try:
+            restarted.greet()
+            assert link.accept(5.0)
+            assert link.peer == f"127.0.0.1:{restarted.sock.getsockname()[1]}"
+        finally:
+            restarted.close()
+            stale.close()
+
+
+def test_a_silent_peer_is_dropped_after_the_silence_limit(free_instance, monkeypatch):
+    from sitl_bridge.hil import admission
+
+    monkeypatch.setattr(admission, "SILENCE_LIMIT_S", 0.2)
+    with HilLink(free_instance) as link:
+        silent = _raw_connection(link.port)
+        try:
+            assert not link.accept(0.6)
+            silent.settimeout(2.0)
+            assert silent.recv(1) == b""
+        finally:
+            silent.close()

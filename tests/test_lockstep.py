@@ -71,6 +71,8 @@ def make_rig(first_instance: int, vehicles: int, peer_factory, **lockstep_args):
     sensors = [SensorSuite(world.home, seed=i) for i in range(vehicles)]
     links = [HilLink(first_instance + i) for i in range(vehicles)]
     peers = [peer_factory(link.port, i) for i, link in enumerate(links)]
+    for peer in peers:
+        peer.greet()  # a peer becomes the autopilot once it speaks (PX4's first bytes)
     lockstep = Lockstep(sim, sensors, links, **lockstep_args)
     assert lockstep.accept_all(5.0)
     return sim, links, peers, lockstep

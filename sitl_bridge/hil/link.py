@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sitl_bridge import mavlink
+from sitl_bridge.hil.admission import Admission
 from sitl_bridge.hil.errors import HilError, LinkClosed, LockstepTimeout
 from sitl_bridge.physics.simulation import MotorCommand
 from sitl_bridge.ports import HIL_BASE_PORT
@@ -175,8 +176,9 @@ class HilLink:
                 "is another simulator using this instance? Pick free ones with --instance-base "
                 "(sitl-bridge run) or -i (sitl-bridge stub)"
             ) from None
-        self._server.listen(1)
+        self._server.listen(8)  # a stray peer in the backlog must not keep the autopilot out
         self._server.setblocking(False)
+        self._admission = Admission(self._server, instance)
         self._client: socket.socket | None = None
         self._peer = ""
         self._time_offset_us = step_us  # first wire time is one step, never 0
@@ -211,24 +213,21 @@ class HilLink:
         return self._client.fileno() if self._client is not None else -1
 
     def accept(self, timeout_s: float) -> bool:
-        """Wait up to `timeout_s` for an autopilot to connect. True once connected (at once
-        if one already is). A new connection starts with no actuator answers yet."""
+        """Wait up to `timeout_s` for an autopilot. True once one is connected (at once if one
+        already is). A peer counts only once it speaks as an autopilot (see `hil.admission`);
+        what it sent until then is handled as the start of the connection."""
         if self._client is not None:
             return True
-        readable, _, _ = select.select([self._server], [], [], max(0.0, timeout_s))
-        if not readable:
+        admitted = self._admission.wait(timeout_s)
+        if admitted is None:
             return False
-        try:
-            client, address = self._server.accept()
-        except BlockingIOError:
-            return False
-        client.setblocking(False)
-        client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self._client = client
-        self._peer = f"{address[0]}:{address[1]}"
+        self._client = admitted.sock
+        self._peer = admitted.peer
         self._reset_connection_state()
         self.stats.connections += 1
+        self.stats.bytes_received += len(admitted.data)
         log.info("vehicle %d: autopilot connected from %s", self.instance, self._peer)
+        self._handle_bytes(admitted.data)  # its greeting (HEARTBEAT, interval request)
         return True
 
     def disconnect(self) -> None:
@@ -244,6 +243,7 @@ class HilLink:
     def close(self) -> None:
         """Close the connection and the server socket (frees the port)."""
         self.disconnect()
+        self._admission.close()
         with contextlib.suppress(OSError):
             self._server.close()
 
