@@ -1,5 +1,5 @@
 """A ground station against the stub: real MAVProxy (the `gcs` extra) on the GCS port (UDP 14550),
-as a user would start it: it sees exactly one vehicle, no fence breach, and all parameters."""
+as a user would start it: it sees the vehicle and no phantom 1:1, no fence breach, and all parameters."""
 
 from __future__ import annotations
 
@@ -34,6 +34,9 @@ def test_mavproxy_sees_one_vehicle_without_fence_breach_and_fetches_parameters(f
         simulator.wait(timeout=30)
     sysid = system_id_for(free_instance)
     detected = [line for line in output.splitlines() if line.startswith("Detected vehicle")]
-    assert detected == [f"Detected vehicle {sysid}:1 on link 0"], output
+    assert f"Detected vehicle {sysid}:1 on link 0" in detected, output
+    # No phantom 1:1 beside it (other simulators on this machine may legitimately show up too:
+    # every instance's GCS link sends to 14550, and tests take instances from 20 on).
+    assert "Detected vehicle 1:1 on link 0" not in detected, output
     assert "fence breach" not in output
     assert "Received 78 parameters" in output, output
