@@ -13,6 +13,7 @@ Four panels, each with its units:
 from __future__ import annotations
 
 import json
+import warnings
 from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl_bridge.rl.episode_log import read_records
-from sitl_bridge.rl.run_dir import EPISODES_FILE, EVALS_FILE, RUN_FILE
+from sitl_bridge.rl.run_dir import BASELINE_FILE, EPISODES_FILE, EVALS_FILE, RUN_FILE
 
 OUTCOMES = ("goal", "crash", "out", "timeout")
 OUTCOME_COLOURS = {"goal": "C2", "crash": "C3", "out": "C1", "timeout": "0.6"}
@@ -93,13 +94,16 @@ def mean_and_band(curves: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray,
     cut to the shortest. With one run the band is the curve itself."""
     length = min(len(c) for c in curves)
     stacked = np.vstack([np.asarray(c[:length], dtype=float) for c in curves])
-    mean = np.nanmean(stacked, axis=0)
-    if len(curves) < 2:
-        return mean, mean, mean
+    with warnings.catch_warnings():  # all-NaN columns (no loss yet) give NaN, as they should
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(stacked, axis=0)
+        if len(curves) < 2:
+            return mean, mean, mean
+        spread = np.nanstd(stacked, axis=0, ddof=1)
     from scipy import stats
 
     counts = np.sum(np.isfinite(stacked), axis=0)
-    sem = np.nanstd(stacked, axis=0, ddof=1) / np.sqrt(np.maximum(counts, 1))
+    sem = spread / np.sqrt(np.maximum(counts, 1))
     half = stats.t.ppf(0.975, np.maximum(counts - 1, 1)) * sem
     return mean, mean - half, mean + half
 
@@ -145,6 +149,11 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     else:
         ax.text(0.5, 0.5, "no greedy evaluations logged\n(train: eval_every)", ha="center", va="center",
                 transform=ax.transAxes, color="0.4")
+    baselines = [json.loads((d / BASELINE_FILE).read_text()) for d in dirs if (d / BASELINE_FILE).is_file()]
+    if baselines:
+        best = max(b["success_rate"] for b in baselines)
+        ax.axhline(best, color="C3", ls="--", lw=1,
+                   label=f"best constant action ({best:.0%}): what learning must beat")
     ax.set_ylim(-0.02, 1.02)
     ax.set_ylabel("greedy success rate (share of drone-episodes)")
     ax.set_title("greedy evaluation during training", fontsize=10)
@@ -157,7 +166,7 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     ax.set_ylim(0, 1)
     ax.set_ylabel(f"training outcome share ({smooth})")
     ax.set_title("training episodes (with exploration)", fontsize=10)
-    ax.legend(loc="upper left", fontsize=8, ncol=4)
+    ax.legend(loc="center left", fontsize=8, framealpha=0.9)
 
     ax = axes[1, 0]
     terms = sorted({k for r in runs for k in r if k.startswith("term:")})
@@ -168,7 +177,9 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     ax.set_ylabel(f"reward per episode ({smooth})")
     ax.set_xlabel("episodes trained")
     ax.set_title("reward per term", fontsize=10)
-    ax.legend(loc="best", fontsize=8)
+    low, high = ax.get_ylim()
+    ax.set_ylim(low, high + 0.35 * (high - low))  # room for the legend above the curves
+    ax.legend(loc="upper left", fontsize=7, ncol=4, framealpha=0.9)
 
     ax = axes[1, 1]
     draw(ax, [r["epsilon"][:shortest] for r in runs], x, "C1", "epsilon (exploration)")
