@@ -280,7 +280,8 @@ class Trainer:
                 if (self.config.eval_every and self.config.eval_episodes
                         and self.episode % self.config.eval_every == 0 and self.episode < self.config.episodes):
                     result = self.evaluate()
-                    bar.update(0, greedy=f"{result.success_rate:.0%}")
+                    baseline = self.constant_baseline()  # measured once per run, then read back
+                    bar.update(0, greedy=f"{result.success_rate:.0%}", constant_best=f"{baseline.success_rate:.0%}")
                     if self.solved(result):
                         self.stopped_early = True
                         break
