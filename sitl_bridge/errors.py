@@ -146,13 +146,37 @@ def _describe_number(positive: bool, non_negative: bool, minimum: float | None, 
     return " ".join(parts)
 
 
+MAX_YAML_BYTES = 16 * 1024 * 1024
+"""Scenario files are small; anything larger is refused before parsing."""
+MAX_YAML_DEPTH = 64
+"""Nesting of lists/mappings a scenario can need is a handful; deeper input is refused (it
+would exhaust the parser's recursion)."""
+
+
+def _short_path(source: str) -> str:
+    return source if len(source) <= 200 else source[:120] + f"...({len(source)} characters)"
+
+
 def load_yaml(path: str | Path) -> Node:
-    """Read a YAML file safely into a root Node; unreadable or malformed files are ConfigErrors."""
-    source = str(path)
+    """Read a YAML file safely into a root Node; unreadable, non-UTF-8, huge, too deeply nested
+    or malformed files are one-line ConfigErrors."""
+    source = _short_path(str(path))
     try:
-        text = Path(path).read_text()
+        with open(path, "rb") as handle:
+            raw = handle.read(MAX_YAML_BYTES + 1)
     except OSError as exc:
-        raise ConfigError(f"{source}: cannot read file ({exc.strerror})") from None
+        raise ConfigError(f"{source}: cannot read file ({exc.strerror or exc})") from None
+    except ValueError as exc:  # e.g. an embedded NUL in the name
+        raise ConfigError(f"{source}: cannot read file ({exc})") from None
+    if len(raw) > MAX_YAML_BYTES:
+        raise ConfigError(f"{source}: file is larger than {MAX_YAML_BYTES // (1024 * 1024)} MiB; not a scenario")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{source}: not UTF-8 text (byte {exc.start} is {raw[exc.start]:#04x})") from None
+    depth = _bracket_depth(text)
+    if depth > MAX_YAML_DEPTH:
+        raise ConfigError(f"{source}: nested {depth} levels deep (at most {MAX_YAML_DEPTH}); not a scenario")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -160,4 +184,19 @@ def load_yaml(path: str | Path) -> Node:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or "malformed YAML"
         raise ConfigError(f"{source}: invalid YAML{where}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"{source}: nested too deeply to read") from None
     return Node(data, source)
+
+
+def _bracket_depth(text: str) -> int:
+    """Deepest nesting of flow brackets ([ and {) in `text`, a cheap guard before parsing
+    (indentation nesting is bounded by the line length and the file size)."""
+    depth = deepest = 0
+    for char in text:
+        if char in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in "]}":
+            depth = max(0, depth - 1)
+    return deepest

@@ -95,7 +95,7 @@ def _parse_term(name: str, node: Node) -> RewardTerm:
         scale = _scale(node.get("scale"))
         if mode == "progress":
             return RewardTerm(name, scale, progress_toward_goal)
-        min_progress = node.get("min_progress_m", 0.1).number(non_negative=True)
+        min_progress = node.get("min_progress_m", 0.1).number(non_negative=True, maximum=1000.0)
         return RewardTerm(name, scale, closer_binary(min_progress))
     if isinstance(node.value, dict):
         node.reject_unknown({"scale"})

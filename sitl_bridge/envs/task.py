@@ -118,7 +118,7 @@ def _parse_action(node: Node, num_drones: int) -> ActionConfig:
 def _parse_end(node: Node) -> EndConfig:
     node.reject_unknown({"goal_margin_m", "crash_on_lidar", "out_of_workspace"})
     return EndConfig(
-        goal_margin_m=node.get("goal_margin_m", 0.0).number(non_negative=True),
+        goal_margin_m=node.get("goal_margin_m", 0.0).number(non_negative=True, maximum=1000.0),
         crash_on_lidar=node.get("crash_on_lidar", True).boolean(),
         out_of_workspace=node.get("out_of_workspace", True).boolean(),
     )

@@ -36,6 +36,11 @@ class CheckpointCorrupt(CheckpointError):
     """A checkpoint file is damaged, truncated or not a checkpoint."""
 
 
+class CheckpointNotRestorable(CheckpointError):
+    """A sound checkpoint that cannot be resumed from as it is (e.g. the episode log it covers
+    was damaged since): the previous one is tried, and this one is left in place."""
+
+
 def checkpoint_path(directory: str | Path, episode: int) -> Path:
     """Where the checkpoint taken after `episode` finished episodes lives."""
     return Path(directory) / f"ckpt_{episode:07d}.safetensors"
@@ -144,6 +149,9 @@ def restore_newest(directory: str | Path,
         try:
             tensors, state = load_checkpoint(path)
             return restore(path, tensors, state)
+        except CheckpointNotRestorable as exc:
+            problems.append(str(exc))
+            warn(f"checkpoint {path.name} cannot be resumed from: {exc}; trying the previous checkpoint")
         except CheckpointCorrupt as exc:
             problems.append(str(exc))
             moved = quarantine(path)

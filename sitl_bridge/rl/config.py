@@ -19,6 +19,8 @@ import argparse
 import ast
 import dataclasses
 import inspect
+import math
+import re
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -29,6 +31,13 @@ from sitl_bridge.errors import ConfigError, Node, load_yaml
 OPTIMIZERS = ("adam", "adamax", "sgd", "rmsprop")
 LOSSES = ("mse", "huber", "mae")
 TARGET_UPDATE_UNITS = ("steps", "episodes")
+
+
+SAFE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
+"""Names that become parts of paths (the experiment's name in run directory names)."""
+MAX_EPISODES = 10_000_000
+MAX_REPLAY_ROWS = 20_000_000
+"""Replay rows at most (about 10 GB with the largest shipped observation of 65 values)."""
 
 
 @dataclass(frozen=True)
@@ -99,33 +108,42 @@ class TrainConfig:
 
     def validate(self, source: str = "train") -> None:
         """Raise ConfigError on values that cannot work (one line, naming the field)."""
+        finite = all(math.isfinite(v) for v in dataclasses.astuple(self) if isinstance(v, float))
+        if not finite:
+            name = next(f.name for f in dataclasses.fields(self)
+                        if isinstance(getattr(self, f.name), float) and not math.isfinite(getattr(self, f.name)))
+            raise ConfigError(f"{source}: {name}: expected a finite number, got {getattr(self, name)!r}")
         checks: list[tuple[str, bool, str]] = [
-            ("episodes", self.episodes >= 0, "an integer >= 0"),
+            ("experiment", bool(SAFE_NAME.fullmatch(self.experiment)),
+             "a name of letters, digits, '_', '-' and '.' (at most 64, not starting with '.'): it becomes "
+             "part of the run directory's name"),
+            ("episodes", 0 <= self.episodes <= MAX_EPISODES, f"an integer in [0, {MAX_EPISODES}]"),
             ("gamma", 0.0 <= self.gamma <= 1.0, "a number in [0, 1]"),
             ("epsilon_max", 0.0 <= self.epsilon_max <= 1.0, "a number in [0, 1]"),
             ("epsilon_min", 0.0 <= self.epsilon_min <= self.epsilon_max, "a number in [0, epsilon_max]"),
             ("epsilon_decay", self.epsilon_decay >= 0.0, "a non-negative number"),
             ("transfer_epsilon_max", 0.0 <= self.transfer_epsilon_max <= 1.0, "a number in [0, 1]"),
-            ("learning_rate", self.learning_rate > 0.0, "a positive number"),
-            ("learning_rate_end", self.learning_rate_end >= 0.0, "a non-negative number"),
+            ("learning_rate", 0.0 < self.learning_rate <= 10.0, "a number in (0, 10]"),
+            ("learning_rate_end", 0.0 <= self.learning_rate_end <= 10.0, "a number in [0, 10]"),
             ("optimizer", self.optimizer in OPTIMIZERS, f"one of {', '.join(OPTIMIZERS)}"),
             ("loss", self.loss in LOSSES, f"one of {', '.join(LOSSES)}"),
-            ("batch_size", self.batch_size >= 1, "an integer >= 1"),
-            ("learning_starts", self.learning_starts >= 0, "an integer >= 0"),
-            ("train_every", self.train_every >= 1, "an integer >= 1"),
-            ("target_update_period", self.target_update_period >= 1, "an integer >= 1"),
+            ("batch_size", 1 <= self.batch_size <= 65536, "an integer in [1, 65536]"),
+            ("learning_starts", 0 <= self.learning_starts <= MAX_REPLAY_ROWS, f"an integer in [0, {MAX_REPLAY_ROWS}]"),
+            ("train_every", 1 <= self.train_every <= 100_000, "an integer in [1, 100000]"),
+            ("target_update_period", 1 <= self.target_update_period <= 10_000_000, "an integer in [1, 10000000]"),
             ("target_update_unit", self.target_update_unit in TARGET_UPDATE_UNITS, "steps or episodes"),
-            ("replay_capacity", self.replay_capacity >= self.batch_size, "an integer >= batch_size"),
-            ("layers", self.layers >= 1, "an integer >= 1"),
-            ("hidden_units", self.hidden_units >= 1, "an integer >= 1"),
+            ("replay_capacity", self.batch_size <= self.replay_capacity <= MAX_REPLAY_ROWS,
+             f"an integer in [batch_size, {MAX_REPLAY_ROWS}] (each row holds two observations)"),
+            ("layers", 1 <= self.layers <= 32, "an integer in [1, 32]"),
+            ("hidden_units", 1 <= self.hidden_units <= 8192, "an integer in [1, 8192]"),
             ("max_grad_norm", self.max_grad_norm >= 0.0, "a non-negative number"),
-            ("eval_episodes", self.eval_episodes >= 0, "an integer >= 0"),
-            ("eval_every", self.eval_every >= 0, "an integer >= 0"),
+            ("eval_episodes", 0 <= self.eval_episodes <= 100_000, "an integer in [0, 100000]"),
+            ("eval_every", 0 <= self.eval_every <= MAX_EPISODES, f"an integer in [0, {MAX_EPISODES}]"),
             ("stop_on_success", 0.0 <= self.stop_on_success <= 1.0, "a number in [0, 1]"),
-            ("checkpoints_kept", self.checkpoints_kept >= 2, "an integer >= 2 (one to fall back on)"),
-            ("replay_segment_rows", self.replay_segment_rows >= 1, "an integer >= 1"),
-            ("success_window", self.success_window >= 1, "an integer >= 1"),
-            ("torch_threads", self.torch_threads >= 1, "an integer >= 1"),
+            ("checkpoints_kept", 2 <= self.checkpoints_kept <= 1000, "an integer in [2, 1000] (one to fall back on)"),
+            ("replay_segment_rows", 1 <= self.replay_segment_rows <= MAX_REPLAY_ROWS, f"an integer in [1, {MAX_REPLAY_ROWS}]"),
+            ("success_window", 1 <= self.success_window <= 1_000_000, "an integer in [1, 1000000]"),
+            ("torch_threads", 1 <= self.torch_threads <= 1024, "an integer in [1, 1024]"),
             ("device", self.device in ("cpu", "cuda", "auto"), "cpu, cuda or auto"),
         ]
         for name, ok, expected in checks:

@@ -7,6 +7,7 @@ with no gap and no duplicate.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -59,11 +60,25 @@ class EpisodeLog:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.path.touch(exist_ok=True)
+        self._sha: hashlib._Hash | None = None  # running SHA-256 of the file, built when first asked
 
     def append(self, records: list[EpisodeRecord]) -> int:
         """Append records durably; returns the file's size in bytes afterwards."""
-        text = "".join(json.dumps(asdict(r), separators=(",", ":")) + "\n" for r in records)
-        return append_durably(self.path, text.encode())
+        data = "".join(json.dumps(asdict(r), separators=(",", ":")) + "\n" for r in records).encode()
+        if self._sha is not None:
+            self._sha.update(data)
+        return append_durably(self.path, data)
+
+    def digest(self) -> str:
+        """SHA-256 of the whole log (kept up to date as records are appended)."""
+        if self._sha is None:
+            self._sha = hashlib.sha256(self.path.read_bytes())
+        return self._sha.hexdigest()
+
+    def prefix_digest(self, size: int) -> str:
+        """SHA-256 of the log's first `size` bytes (what a checkpoint recorded)."""
+        with open(self.path, "rb") as handle:
+            return hashlib.sha256(handle.read(size)).hexdigest()
 
     def size(self) -> int:
         return self.path.stat().st_size
@@ -73,14 +88,26 @@ class EpisodeLog:
         with open(self.path, "r+b") as handle:
             handle.truncate(size)
             os.fsync(handle.fileno())
+        self._sha = None
 
 
-def read_records(path: str | Path) -> list[dict]:
-    """Every complete record of an episode log (a torn last line is ignored)."""
+def read_records(path: str | Path, warn=None) -> list[dict]:  # noqa: ANN001 - callable(str)
+    """Every complete record of an episode log. A torn last line is ignored; a line that is not
+    a JSON record (damage) is skipped and reported through `warn` (default: logging)."""
+    import logging
+
     records: list[dict] = []
-    with open(path) as handle:
-        for line in handle:
-            if not line.endswith("\n"):
+    with open(path, "rb") as handle:
+        for number, raw in enumerate(handle, start=1):
+            if not raw.endswith(b"\n"):
                 break
-            records.append(json.loads(line))
+            try:
+                record = json.loads(raw)
+                if not isinstance(record, dict) or "episode" not in record:
+                    raise ValueError("not an episode record")
+            except ValueError:
+                (warn or logging.getLogger(__name__).warning)(
+                    f"{path}: line {number} is not an episode record; skipped")
+                continue
+            records.append(record)
     return records

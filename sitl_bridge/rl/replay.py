@@ -34,9 +34,11 @@ class ReplayBuffer:
         self.rows = np.zeros(capacity, dtype=self.dtype)
         self.total_added = 0
         """Transitions ever added (the next row's global index)."""
+        self.first_row = 0
+        """Global index of the oldest row held (after a replay lost on disk: where it restarted)."""
 
     def __len__(self) -> int:
-        return min(self.total_added, self.capacity)
+        return min(self.total_added - self.first_row, self.capacity)
 
     def make_rows(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
                   next_obs: np.ndarray, terminated: np.ndarray) -> np.ndarray:
@@ -63,12 +65,15 @@ class ReplayBuffer:
         """Refill from disk: `rows` are the last transitions of `total_added` ever added."""
         rows = rows[-self.capacity:]
         self.rows[:] = np.zeros(1, dtype=self.dtype)
-        self.total_added = total_added - len(rows)
+        self.total_added = self.first_row = total_added - len(rows)
         self.add_rows(rows)
 
     def sample(self, batch_size: int, rng: np.random.Generator, device: torch.device | str = "cpu") -> Batch:
         """A uniform random mini-batch (with replacement) as tensors."""
-        picked = self.rows[rng.integers(0, len(self), size=batch_size)]
+        index = rng.integers(0, len(self), size=batch_size)
+        if len(self) < self.capacity:  # not full yet: the rows held start at slot first_row
+            index = (self.first_row + index) % self.capacity
+        picked = self.rows[index]
         return rows_to_batch(picked, device)
 
 

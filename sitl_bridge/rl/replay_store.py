@@ -34,13 +34,17 @@ class ReplayStoreState:
     total_rows: int = 0
     crc: dict[int, int] = field(default_factory=dict)
     """CRC32 of each live shard's first rows (as many as existed at the checkpoint)."""
+    base_row: int = 0
+    """Rows before this one are not on disk (discarded after damage); shard 0 starts here."""
 
     def to_json(self) -> dict:
-        return {"total_rows": self.total_rows, "crc": {str(k): v for k, v in self.crc.items()}}
+        return {"total_rows": self.total_rows, "crc": {str(k): v for k, v in self.crc.items()},
+                "base_row": self.base_row}
 
     @classmethod
     def from_json(cls, value: dict) -> ReplayStoreState:
-        return cls(int(value["total_rows"]), {int(k): int(v) for k, v in value["crc"].items()})
+        return cls(int(value["total_rows"]), {int(k): int(v) for k, v in value["crc"].items()},
+                   int(value.get("base_row", 0)))
 
 
 class ReplayStore:
@@ -69,7 +73,7 @@ class ReplayStore:
         """Append rows durably (fsync) to the shards."""
         offset = 0
         while offset < len(rows):
-            segment, row_in_segment = divmod(self.state.total_rows, self.segment_rows)
+            segment, row_in_segment = divmod(self.state.total_rows - self.state.base_row, self.segment_rows)
             take = min(len(rows) - offset, self.segment_rows - row_in_segment)
             data = rows[offset:offset + take].tobytes()
             path = self._path(segment)
@@ -89,12 +93,14 @@ class ReplayStore:
     def restore(self, state: ReplayStoreState, capacity: int) -> np.ndarray:
         """Check the shards against a checkpoint's `state`, cut off rows written after it, and
         return its last min(total_rows, capacity) rows. Raises ReplayCorrupt on damage."""
-        first_needed_row = max(0, state.total_rows - capacity)
-        first_segment = first_needed_row // self.segment_rows
-        last_segment = (state.total_rows - 1) // self.segment_rows if state.total_rows else -1
+        base = state.base_row
+        first_needed_row = max(base, state.total_rows - capacity)
+        first_segment = (first_needed_row - base) // self.segment_rows
+        stored = state.total_rows - base
+        last_segment = (stored - 1) // self.segment_rows if stored else -1
         chunks: list[np.ndarray] = []
         for segment in range(first_segment, last_segment + 1):
-            rows_in_segment = min(self.segment_rows, state.total_rows - segment * self.segment_rows)
+            rows_in_segment = min(self.segment_rows, stored - segment * self.segment_rows)
             data = self._read_prefix(segment, rows_in_segment)
             expected = state.crc.get(segment)
             if expected is None or zlib.crc32(data) != expected:
@@ -107,15 +113,24 @@ class ReplayStore:
                 break
             path.unlink()
         if last_segment >= 0:
-            size = (state.total_rows - last_segment * self.segment_rows) * self.dtype.itemsize
+            size = (stored - last_segment * self.segment_rows) * self.dtype.itemsize
             with open(self._path(last_segment), "r+b") as handle:
                 handle.truncate(size)
                 os.fsync(handle.fileno())
         fsync_dir(self.directory)
-        self.state = ReplayStoreState(state.total_rows, dict(state.crc))
+        self.state = ReplayStoreState(state.total_rows, dict(state.crc), base)
         rows = np.concatenate(chunks) if chunks else np.zeros(0, dtype=self.dtype)
-        skip = first_needed_row - first_segment * self.segment_rows
+        skip = first_needed_row - base - first_segment * self.segment_rows
         return rows[skip:].copy()
+
+    def discard(self, state: ReplayStoreState) -> np.ndarray:
+        """Give up the shards on disk (after damage): delete them and continue at the row count
+        of `state` with an empty replay; returns the (no) rows to restore."""
+        for path in self.directory.glob("seg_*.bin"):
+            path.unlink()
+        fsync_dir(self.directory)
+        self.state = ReplayStoreState(state.total_rows, {}, state.total_rows)
+        return np.zeros(0, dtype=self.dtype)
 
     def _read_prefix(self, segment: int, rows: int) -> bytes:
         path = self._path(segment)
@@ -131,7 +146,7 @@ class ReplayStore:
 
     def prune(self, keep_from_row: int) -> None:
         """Delete shards holding only rows before `keep_from_row` (no kept checkpoint needs them)."""
-        last_dead = keep_from_row // self.segment_rows - 1
+        last_dead = (keep_from_row - self.state.base_row) // self.segment_rows - 1
         for segment in sorted(self.state.crc):
             if segment > last_dead:
                 break

@@ -168,11 +168,27 @@ class Trainer:
         for stale in [*run_dir.glob(".*.tmp*"), *run_dir.glob("*/.*.tmp*")]:
             stale.unlink()  # half-written temp files of a killed session (never renamed into place)
         trainer = cls(run_dir, spec, config, env_factory, **kwargs)
-        if ckpt.list_checkpoints(trainer.checkpoint_dir):
-            ckpt.restore_newest(trainer.checkpoint_dir, trainer._restore, warn=trainer.warn)
-        elif spec.init_from:
-            trainer._load_init(*ckpt.resolve_checkpoint(spec.init_from))
+        try:
+            if ckpt.list_checkpoints(trainer.checkpoint_dir):
+                ckpt.restore_newest(trainer.checkpoint_dir, trainer._restore, warn=trainer.warn)
+            else:
+                trainer._start_over_without_history()
+                if spec.init_from:
+                    trainer._load_init(*ckpt.resolve_checkpoint(spec.init_from))
+        except BaseException:
+            trainer.close()
+            raise
         return trainer
+
+    def _start_over_without_history(self) -> None:
+        """A run with no checkpoint starts over, unless it already logged finished episodes:
+        it must never train over its own history (duplicate episodes in the log)."""
+        logged = {r["episode"] for r in read_records(self.episode_log.path, warn=lambda _msg: None)}
+        if logged - {0}:
+            raise ckpt.CheckpointError(
+                f"{self.run_dir}: {len(logged)} episodes are logged but no checkpoint is usable; refusing "
+                "to start the run over its own history (start a new run, or put the checkpoints back)")
+        self.episode_log.truncate(0)  # killed before its first checkpoint: nothing to keep
 
     def _load_init(self, path: Path, tensors: dict[str, torch.Tensor], state: dict[str, Any]) -> None:
         source = state["network"]
@@ -212,6 +228,7 @@ class Trainer:
             "config": self.config.to_dict(),
             "replay": self.store.state.to_json(),
             "log_bytes": log_bytes,
+            "log_sha256": self.episode_log.digest(),
             "recent_success": [bool(s) for s in self.recent_success],
             "rng": {"python": [version, list(internal), gauss],
                     "numpy": self.rng.bit_generator.state},
@@ -221,10 +238,18 @@ class Trainer:
         if state["network"] != self.agent.shape.to_dict():
             raise ckpt.CheckpointCorrupt(f"{path}: network {state['network']} does not match the run's "
                                          f"{self.agent.shape.to_dict()}")
+        recorded = state.get("log_sha256")
+        if recorded is not None and self.episode_log.prefix_digest(state["log_bytes"]) != recorded:
+            raise ckpt.CheckpointNotRestorable(
+                f"the part of {rd.EPISODES_FILE} it covers ({state['log_bytes']} bytes) was changed since")
+        replay_state = ReplayStoreState.from_json(state["replay"])
         try:
-            rows = self.store.restore(ReplayStoreState.from_json(state["replay"]), self.config.replay_capacity)
+            rows = self.store.restore(replay_state, self.config.replay_capacity)
         except ReplayCorrupt as exc:
-            raise ckpt.CheckpointCorrupt(str(exc)) from None
+            # The network, optimizer and counters are intact: keep them, refill the replay.
+            self.warn(f"{exc}: resuming from {path.name} with an empty replay buffer (network, optimizer "
+                      "and counters are intact; the replay refills as training goes on)")
+            rows = self.store.discard(replay_state)
         self.agent.online.load_state_dict(_prefixed(tensors, "online."))
         self.agent.target.load_state_dict(_prefixed(tensors, "target."))
         optimizer_state = torch.load(io.BytesIO(tensors["optimizer"].numpy().tobytes()), weights_only=True)

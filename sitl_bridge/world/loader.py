@@ -147,9 +147,10 @@ def _parse_physics(node: Node) -> PhysicsSettings:
     d = PhysicsSettings()
     return PhysicsSettings(
         step_us=node.get("step_us", d.step_us).integer(minimum=100, maximum=100_000),
-        gravity_m_s2=_num(node.get("gravity", d.gravity_m_s2), non_negative=True),
+        gravity_m_s2=_num(node.get("gravity", d.gravity_m_s2), non_negative=True, maximum=100.0),
         solver_iterations=node.get("solver_iterations", d.solver_iterations).integer(minimum=1, maximum=500),
-        hard_ground_speed_m_s=_num(node.get("hard_ground_speed", d.hard_ground_speed_m_s), positive=True),
+        hard_ground_speed_m_s=_num(node.get("hard_ground_speed", d.hard_ground_speed_m_s), positive=True,
+                                     maximum=MAX_SPEED_M_S),
         crash_tilt_deg=_num(node.get("crash_tilt", d.crash_tilt_deg), positive=True, maximum=180.0),
     )
 
@@ -207,7 +208,7 @@ def _parse_lidar(node: Node) -> LidarConfig:
         max_fov = 360.0 if group == "horizontal" else 180.0
         groups[group] = (g.get("rays", rays).integer(minimum=0, maximum=1000),
                          _num(g.get("fov", fov), non_negative=True, maximum=max_fov))
-    range_m = _num(node.get("range", d.range_m), positive=True)
+    range_m = _num(node.get("range", d.range_m), positive=True, maximum=1000.0)
     near = _num(node.get("near", d.near_m), non_negative=True, maximum=range_m)
     crash_node = node.get("crash", d.crash_m)
     crash = _num(crash_node, non_negative=True)
@@ -296,9 +297,9 @@ def _parse_obstacle(node: Node, base_dir: Path, vehicle_index: dict[str, int]) -
     shape = _parse_shape(node, base_dir)
     position = _vec(node.get("position"), 3)
     yaw = math.radians(_num(node.get("yaw", 0.0), minimum=-360.0, maximum=360.0))
-    color = _vec(node.get("color", [0.6, 0.6, 0.6, 1.0]), 4, non_negative=True)
+    color = _vec(node.get("color", [0.6, 0.6, 0.6, 1.0]), 4, non_negative=True, maximum=1.0)
     mover = _parse_mover(node.get("mover")) if node.has("mover") else None
-    mass = _num(node.get("mass", 1.0), positive=True)
+    mass = _num(node.get("mass", 1.0), positive=True, maximum=1e6)
     randomize = None
     if node.has("randomize"):
         if mover is not None:
@@ -312,7 +313,7 @@ def _parse_obstacle(node: Node, base_dir: Path, vehicle_index: dict[str, int]) -
 def _parse_mover(node: Node) -> PatrolMover | RandomLegsMover:
     node.mapping()
     kind = node.get("type").string(("patrol", "random_legs"))
-    speed = _num(node.get("speed"), positive=True)
+    speed = _num(node.get("speed"), positive=True, maximum=MAX_SPEED_M_S)
     if kind == "patrol":
         node.reject_unknown({"type", "speed", "points"})
         points = tuple(_vec(p, 3) for p in node.get("points").list(min_len=2))
@@ -349,17 +350,25 @@ def _parse_obstacle_randomization(node: Node, base_dir: Path, vehicle_index: dic
     return ObstacleRandomization(along, position, yaw, tuple(variants))
 
 
-def _vec(node: Node, length: int = 3, **kwargs: bool) -> tuple[float, ...]:
-    """`Node.vector`, also refusing inf (YAML's .inf would otherwise reach the physics)."""
+MAX_EXTENT_M = 10_000.0
+"""Every length, position and size of a world lies within +-10 km (a bound on absurd values
+that would otherwise overflow float32 later)."""
+MAX_SPEED_M_S = 100.0
+
+
+def _vec(node: Node, length: int = 3, *, maximum: float = MAX_EXTENT_M, **kwargs: bool) -> tuple[float, ...]:
+    """`Node.vector`, also refusing inf and values beyond +-`maximum`."""
     values = node.vector(length, **kwargs)
-    if not all(math.isfinite(v) for v in values):
-        raise node.error(f"{length} finite numbers")
+    if not all(math.isfinite(v) and abs(v) <= maximum for v in values):
+        raise node.error(f"{length} finite numbers within +-{maximum:g}")
     return values
 
 
-def _num(node: Node, **kwargs: float | bool | None) -> float:
-    """`Node.number`, also refusing inf."""
-    value = node.number(**kwargs)  # type: ignore[arg-type]
+def _num(node: Node, *, maximum: float | None = None, minimum: float | None = None,
+         **kwargs: float | bool | None) -> float:
+    """`Node.number`, also refusing inf; bounded to +-MAX_EXTENT_M unless given bounds."""
+    value = node.number(minimum=-MAX_EXTENT_M if minimum is None else minimum,  # type: ignore[arg-type]
+                        maximum=MAX_EXTENT_M if maximum is None else maximum, **kwargs)
     if not math.isfinite(value):
         raise node.error("a finite number")
     return value
