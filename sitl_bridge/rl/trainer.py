@@ -336,7 +336,7 @@ class Trainer:
         baseline = constant_action_baseline(self.env, world=self.spec.world, episodes=self.config.eval_episodes,
                                             seed=self.spec.seed, progress=self.progress)
         atomic_write_json(path, baseline.to_dict())
-        if baseline.success_rate >= self.config.stop_on_success:
+        if self.config.stop_on_success and baseline.success_rate >= self.config.stop_on_success:
             self.warn(f"always choosing action {baseline.action} already succeeds in "
                       f"{baseline.success_rate:.0%} of the evaluation episodes: this scenario needs no "
                       "learning, so training runs its whole budget")
