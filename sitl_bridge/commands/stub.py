@@ -1,8 +1,9 @@
 """`sitl-bridge stub -i N`: the PX4-compatible autopilot stub as its own process.
 
 Connects to the simulator's HIL server on TCP 4560+N (retrying, like PX4) and serves PX4's
-MAVLink API on UDP 14580+N -> 14540+N (and the GCS link 18570+N -> 14550). When a simulator
-session ends the stub restarts fresh, like a new PX4 process, and waits for the next one.
+MAVLink API on UDP 14580+N -> 14540+N (and the GCS link 18570+N -> 14550). When the simulator
+session ends (the simulator closed the link or died) the stub exits, as PX4 does; with
+`--keep-alive` it restarts fresh, like a new PX4 process, and waits for the next session.
 SIGTERM / SIGINT stop it cleanly.
 """
 
@@ -30,7 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--speed-factor", type=float, default=None,
                         help="scale the `wall` timeouts of px4_params/*.params for this speed factor")
     parser.add_argument("--no-gcs", action="store_true", help="do not serve the GCS link (18570+N -> 14550)")
-    parser.add_argument("--once", action="store_true", help="exit when the first simulator session ends")
+    parser.add_argument("--keep-alive", action="store_true",
+                        help="after a simulator session ends, start fresh and wait for the next one")
+    parser.add_argument("--once", action="store_true", help=argparse.SUPPRESS)  # the default now
     parser.set_defaults(func=main)
 
 
@@ -51,6 +54,7 @@ def parse_param_overrides(items: list[str]) -> dict[str, float]:
 def main(args: argparse.Namespace) -> int:
     from sitl_bridge.autopilot.stub import ParamTable, StubVehicle
     from sitl_bridge.autopilot.stub.params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
+    from sitl_bridge.ports import vehicle_ports
 
     try:
         overrides = parse_param_overrides(args.param)
@@ -76,15 +80,23 @@ def main(args: argparse.Namespace) -> int:
             vehicle = StubVehicle(args.instance, args.host, ground_truth_estimate=args.ground_truth,
                                   params=params, gcs=not args.no_gcs)
         except OSError as exc:
-            log.error("stub %d: cannot open its MAVLink ports (%s); is another autopilot using instance %d?",
+            log.error("stub %d: cannot open its MAVLink ports (%s); is another autopilot using instance %d? Pick another with -i",
                       args.instance, exc.strerror, args.instance)
             return 1
-        log.info("stub %d: waiting for the simulator on %s:%d", args.instance, args.host, vehicle.hil.port)
+        ports = vehicle_ports(args.instance)
+        print(f"sitl-bridge stub {args.instance}: waiting for the simulator on tcp {args.host}:{ports.hil}; "
+              f"MAVLink API udp {ports.api_bind} -> {ports.api_client}"
+              + ("" if args.no_gcs else f", GCS udp {ports.gcs_bind} -> {ports.gcs_remote}")
+              + " (Ctrl-C stops)", flush=True)
         try:
             vehicle.hil.run(lambda: stopping)
         finally:
             vehicle.close()
-        if args.once or vehicle.hil.stats.connections == 0:
+        if stopping or vehicle.hil.stats.connections == 0:
             break
-        log.info("stub %d: simulator session ended; starting fresh", args.instance)
+        if not args.keep_alive:
+            print(f"sitl-bridge stub {args.instance}: the simulator closed the link; exiting "
+                  "(--keep-alive waits for the next session)", flush=True)
+            break
+        print(f"sitl-bridge stub {args.instance}: simulator session ended; starting fresh", flush=True)
     return 0
