@@ -63,7 +63,7 @@ class SimSession:
         instance_base: vehicle k uses instance `instance_base + k` (ports: `sitl_bridge.ports`).
         seed: seeds the simulation (layout, movers) and the sensor noise.
         px4_bin / px4_rootfs: PX4 SITL binary and ROMFS (`px4` only; PX4_BIN by default).
-        gui: pybullet GUI.
+        gui: pybullet GUI. visual: coloured bodies for offscreen pictures (`physics.render`).
         num_vehicles: override the world's vehicle count (see `with_vehicle_count`).
         ground_truth_estimate: autopilots use ground truth instead of estimating from the
             sensors (kinds that support it, e.g. the stub).
@@ -86,6 +86,7 @@ class SimSession:
         px4_bin: str | os.PathLike[str] | None = None,
         px4_rootfs: str | os.PathLike[str] | None = None,
         gui: bool = False,
+        visual: bool = False,
         num_vehicles: int | None = None,
         ground_truth_estimate: bool = False,
         params: Mapping[str, float] | None = None,
@@ -109,7 +110,7 @@ class SimSession:
         self.instance_base = instance_base
         self.instances = [instance_base + k for k in range(self.world.num_vehicles)]
         self.seed = seed
-        self.gui = gui
+        self.gui, self.visual = gui, visual
         self.host = host
         self.actuator_timeout_s = actuator_timeout_s
         self.autopilots: AutopilotFleet = fleet_class(FleetConfig(
@@ -151,7 +152,7 @@ class SimSession:
         if self.gui and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
             # pybullet would exit(1) from C without a word of ours
             raise SessionError("--gui needs a display, and DISPLAY is not set")
-        self.sim = Simulation(world, seed=self.seed, step_us=None, gui=self.gui)
+        self.sim = Simulation(world, seed=self.seed, step_us=None, gui=self.gui, visual=self.visual)
         self._closers.append(self.sim.close)
         step_us = self.sim.step_us
         self.sensors = [SensorSuite(world.home, seed=sensor_seed(self.seed, k), step_us=step_us)

@@ -83,6 +83,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="fly this trained policy greedily in the world's scenario, through "
                              "MAVSDK and the chosen autopilot (stub or px4), then exit")
     parser.add_argument("--episodes", type=int, default=1, help="episodes to fly with --policy (default 1)")
+    parser.add_argument("--video", metavar="FILE.mp4", default=None,
+                        help="with --policy: record what the policy did (the `video` extra)")
     parser.set_defaults(func=main)
 
 
@@ -213,6 +215,7 @@ def _run_policy(args: argparse.Namespace) -> int:
     from sitl_bridge.rl.policy import policy_from_checkpoint
     from sitl_bridge.rl.rollout import eval_seeds, rollout
     from sitl_bridge.rl.run_dir import run_dir_of, run_scenario
+    from sitl_bridge.rl.video import VideoUnavailable
 
     try:
         # The run's own scenario unless a world is named (a bare checkpoint file: the default world).
@@ -220,17 +223,28 @@ def _run_policy(args: argparse.Namespace) -> int:
         policy = policy_from_checkpoint(args.policy)
         print(f"flying {args.policy} greedily in {world} through MAVSDK and the {args.autopilot} autopilot: "
               f"{args.episodes} episode(s); starting the simulator...", flush=True)
+        videos = None
+        if args.video:
+            from sitl_bridge.envs.scenario import load_scenario
+            from sitl_bridge.rl.video import EpisodeVideos
+
+            videos = EpisodeVideos.into_file(args.video, load_scenario(world).task.render.fps)
         factory = scenario_env_factory(world, args.autopilot, speed_factor=args.speed_factor,
-                                       instance_base=args.instance_base, px4_bin=args.px4_bin, gui=args.gui)
+                                       instance_base=args.instance_base, px4_bin=args.px4_bin, gui=args.gui,
+                                       render_mode="rgb_array" if videos is not None else None)
         env = DronesEnv(factory(args.seed))
         try:
-            traces = rollout(env, policy, eval_seeds(args.seed, args.episodes), on_episode=_print_episode)
+            traces = rollout(env, policy, eval_seeds(args.seed, args.episodes), on_episode=_print_episode,
+                             videos=videos)
         finally:
             env.close()
+        if videos is not None:
+            videos.close()
+            print(f"video: {args.video}", flush=True)
     except KeyboardInterrupt:
         print("\ninterrupted; shut down cleanly", file=sys.stderr)
         return 130
-    except (ConfigError, ValueError, FileNotFoundError) as exc:  # wrong world/checkpoint pairing
+    except (ConfigError, ValueError, FileNotFoundError, VideoUnavailable) as exc:  # wrong pairing, no extra
         print(f"sitl-bridge run: {exc}", file=sys.stderr)
         return 2
     except RUNTIME_FAILURES as exc:

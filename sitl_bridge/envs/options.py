@@ -24,6 +24,9 @@ ESTIMATORS = ("sensors", "ground_truth")
   available with `px4` (it always runs EKF2)."""
 
 
+RENDER_MODES = (None, "rgb_array", "human")
+
+
 @dataclass(frozen=True)
 class EnvOptions:
     """The options of an env and its backend (see `SitlEnv`'s Arguments)."""
@@ -43,6 +46,9 @@ class EnvOptions:
     """pybullet GUI."""
     estimator: str = "sensors"
     """`sensors` or `ground_truth` (see `ESTIMATORS`)."""
+    render_mode: str | None = None
+    """Gymnasium render mode: None (nothing drawn, no cost), `rgb_array` (offscreen frames from
+    `render()`), `human` (pybullet's GUI window; implies `gui`)."""
 
     def __post_init__(self) -> None:
         kind = env_kind(self.autopilot)  # ValueError naming the choices
@@ -52,8 +58,15 @@ class EnvOptions:
             able = [n for n in names(env=True) if env_kind(n).supports_ground_truth]
             raise ValueError(f"estimator='ground_truth' needs an autopilot that flies on ground truth "
                              f"({', '.join(able)}); {self.autopilot} runs its own estimator")
+        if self.render_mode not in RENDER_MODES:
+            raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {self.render_mode!r}")
         if not self.speed_factor >= 0:
             raise ValueError(f"speed_factor must be >= 0, got {self.speed_factor!r}")
+
+    @property
+    def uses_gui(self) -> bool:
+        """pybullet's GUI window: asked for, or `render_mode="human"`."""
+        return self.gui or self.render_mode == "human"
 
     @property
     def ground_truth(self) -> bool:
@@ -75,4 +88,4 @@ class EnvOptions:
         return replace(options or cls(), **overrides)
 
 
-__all__ = ["ESTIMATORS", "EnvOptions"]
+__all__ = ["ESTIMATORS", "RENDER_MODES", "EnvOptions"]

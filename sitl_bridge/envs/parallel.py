@@ -14,9 +14,11 @@ from sitl_bridge.client.actions import NUM_ACTIONS
 from sitl_bridge.envs.backends.base import Backend
 from sitl_bridge.envs.manual import describe
 from sitl_bridge.envs.options import EnvOptions
+from sitl_bridge.envs.render import EnvRenderer
 from sitl_bridge.envs.runner import EpisodeRunner
 from sitl_bridge.envs.scenario import Scenario, load_scenario
 from sitl_bridge.envs.single import observation_space
+from sitl_bridge.physics.render import RenderConfig
 
 
 class SitlParallelEnv(ParallelEnv):
@@ -46,7 +48,8 @@ class SitlParallelEnv(ParallelEnv):
     * v0: initial version (thesis scenarios TE and TW; any scenario file works).
     """
 
-    metadata = {"render_modes": [], "name": "sitl_bridge_parallel_v0"}
+    metadata = {"render_modes": ["rgb_array", "human"], "name": "sitl_bridge_parallel_v0",
+                "render_fps": RenderConfig().fps}
 
     def __init__(self, scenario: str | Path | Scenario, *, backend: Backend | None = None,
                  options: EnvOptions | None = None, **option_values: Any) -> None:
@@ -60,6 +63,10 @@ class SitlParallelEnv(ParallelEnv):
         self._observation_space = observation_space(self.scenario)
         self._action_space = spaces.Discrete(NUM_ACTIONS)
         self._rng = np.random.default_rng(self.options.seed)
+        self.render_mode = self.options.render_mode
+        self.metadata = {**self.metadata, "render_fps": self.scenario.task.render.fps}
+        self._renderer = EnvRenderer(self.scenario.world, self.scenario.task.render, self.backend,
+                                     self.render_mode) if self.render_mode else None
 
     @functools.cache  # noqa: B019 - PettingZoo's idiom: one space per agent
     def observation_space(self, agent: str) -> spaces.Box:
@@ -75,6 +82,8 @@ class SitlParallelEnv(ParallelEnv):
             self._rng = np.random.default_rng(seed)
         results = self.runner.reset(int(self._rng.integers(2**31 - 1)))
         self.agents = list(self.possible_agents)
+        if self.render_mode == "human":
+            self.render()
         return ({a: results[self._index[a]].observation for a in self.agents},
                 {a: results[self._index[a]].info for a in self.agents})
 
@@ -95,7 +104,17 @@ class SitlParallelEnv(ParallelEnv):
             truncations[agent] = r.truncated
             infos[agent] = r.info
         self.agents = [a for a in live if not (terminations[a] or truncations[a])]
+        if self.render_mode == "human":
+            self.render()
         return observations, rewards, terminations, truncations, infos
+
+    def render(self) -> np.ndarray | None:
+        """`rgb_array`: a frame of the whole scenario (all drones; the scenario's `task.render`
+        camera, `scene` by default); `human`: the GUI camera on the first drone, returns None."""
+        if self._renderer is None:
+            return None
+        follow = 0 if self.scenario.task.render.camera == "follow" else None
+        return self._renderer.render(follow, self.runner.snapshot)
 
     def state(self) -> np.ndarray:
         """Global state: every drone's observation, concatenated in `possible_agents` order."""

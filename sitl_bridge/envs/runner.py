@@ -84,6 +84,11 @@ class EpisodeRunner:
             backend = make_backend(scenario.world, options, start_altitude_m=scenario.task.start_altitude_m)
         return cls(scenario, backend)
 
+    @property
+    def snapshot(self) -> Snapshot | None:
+        """The backend's state after the last reset or step (None before the first reset)."""
+        return self._snapshot
+
     def close(self) -> None:
         """Close the backend (once; later calls do nothing)."""
         if not self._closed:

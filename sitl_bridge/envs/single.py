@@ -13,8 +13,10 @@ from sitl_bridge.client.actions import NUM_ACTIONS
 from sitl_bridge.envs.backends.base import Backend
 from sitl_bridge.envs.manual import describe
 from sitl_bridge.envs.options import EnvOptions
+from sitl_bridge.envs.render import EnvRenderer
 from sitl_bridge.envs.runner import EpisodeRunner
 from sitl_bridge.envs.scenario import Scenario, load_scenario
+from sitl_bridge.physics.render import RenderConfig
 
 
 def observation_space(scenario: Scenario) -> spaces.Box:
@@ -107,7 +109,7 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     * v0: initial version (thesis scenarios E, ER, O, OR, W, street; backends direct/stub/px4).
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": RenderConfig().fps}
 
     def __init__(self, scenario: str | Path | Scenario, *, drone: int = 0, backend: Backend | None = None,
                  options: EnvOptions | None = None, **option_values: Any) -> None:
@@ -121,6 +123,10 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
         self.action_space = spaces.Discrete(NUM_ACTIONS)
         self.observation_space = observation_space(self.scenario)
         self._first_seed = self.options.seed
+        self.render_mode = self.options.render_mode
+        self.metadata = {**self.metadata, "render_fps": self.scenario.task.render.fps}
+        self._renderer = EnvRenderer(self.scenario.world, self.scenario.task.render, self.backend,
+                                     self.render_mode) if self.render_mode else None
 
     def reset(self, *, seed: int | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -130,6 +136,8 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
         # Each episode's layout seed comes from the env's generator: seeded runs repeat exactly.
         results = self.runner.reset(int(self.np_random.integers(2**31 - 1)))
         mine = results[self.drone]
+        if self.render_mode == "human":
+            self.render()
         return mine.observation, mine.info
 
     def step(self, action: int | np.integer) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -137,7 +145,16 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
             raise ValueError(f"action must be an integer in 0..{NUM_ACTIONS - 1}, got {action!r}")
         results = self.runner.step({self.drone: int(action)})
         mine = results[self.drone]
+        if self.render_mode == "human":
+            self.render()
         return mine.observation, mine.reward, mine.terminated, mine.truncated, mine.info
+
+    def render(self) -> np.ndarray | None:
+        """`rgb_array`: the current frame (height x width x 3, uint8; camera from the scenario's
+        `task.render`); `human`: points the GUI's camera at the drone and returns None."""
+        if self._renderer is None:
+            return None
+        return self._renderer.render(self.drone, self.runner.snapshot)
 
     def describe(self) -> str:
         """This scenario's manual (Markdown): observation table with bounds, rewards, episode end."""

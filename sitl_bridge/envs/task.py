@@ -25,6 +25,17 @@ how it is rewarded, when an episode ends, what an action means). Example::
       end:
         goal_margin_m: 0.0          # reached inside the world's goal box grown by this
         crash_on_lidar: true        # the lidar's crash flag ends the episode as a crash
+      render:                       # camera of render_mode="rgb_array" and videos (all optional)
+        width: 512
+        height: 384
+        camera: scene               # scene (frames the workspace) | follow (behind the drone)
+        distance_m: null            # default: fits the workspace (scene), 6 m (follow)
+        yaw_deg: 30
+        pitch_deg: -35
+        target_m: null              # scene camera's target (default: the workspace centre)
+        fov_deg: 60
+        lidar_rays: false           # draw the lidar rays
+        fps: 4                      # of recorded videos
 
 Unknown keys are errors (typos never pass silently); every error is one line naming the file and
 the key path (`sitl_bridge.errors.ConfigError`).
@@ -38,6 +49,7 @@ from sitl_bridge.envs.features import Feature, parse_observation
 from sitl_bridge.envs.rewards import RewardTerm, parse_rewards
 from sitl_bridge.envs.view import ScenarioLimits
 from sitl_bridge.errors import ConfigError, Node
+from sitl_bridge.physics.render import CAMERA_MODES, RenderConfig
 
 ACTION_FRAMES = ("world", "goal")
 
@@ -90,6 +102,8 @@ class TaskConfig:
     rewards: tuple[RewardTerm, ...]
     end: EndConfig
     source: str = ""
+    render: RenderConfig = RenderConfig()
+    """Camera of `render_mode="rgb_array"` (and recorded videos)."""
 
     @property
     def observation_size(self) -> int:
@@ -124,11 +138,31 @@ def _parse_end(node: Node) -> EndConfig:
     )
 
 
+def _parse_render(node: Node) -> RenderConfig:
+    node.reject_unknown({"width", "height", "camera", "distance_m", "yaw_deg", "pitch_deg", "target_m",
+                         "fov_deg", "lidar_rays", "fps"})
+    d = RenderConfig()
+    target = node.get("target_m", None)
+    return RenderConfig(
+        width=node.get("width", d.width).integer(minimum=16, maximum=4096),
+        height=node.get("height", d.height).integer(minimum=16, maximum=4096),
+        camera=node.get("camera", d.camera).string(CAMERA_MODES),
+        distance_m=None if node.get("distance_m", None).value is None else
+        node.get("distance_m").number(positive=True, maximum=1000.0),
+        yaw_deg=node.get("yaw_deg", d.yaw_deg).number(minimum=-360.0, maximum=360.0),
+        pitch_deg=node.get("pitch_deg", d.pitch_deg).number(minimum=-89.0, maximum=89.0),
+        target_m=None if target.value is None else tuple(target.vector(3)),  # type: ignore[arg-type]
+        fov_deg=node.get("fov_deg", d.fov_deg).number(minimum=5.0, maximum=150.0),
+        lidar_rays=node.get("lidar_rays", d.lidar_rays).boolean(),
+        fps=node.get("fps", d.fps).integer(minimum=1, maximum=240),
+    )
+
+
 def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
     """Parse a `task:` node (its path should be `task`) for a world with the given limits."""
     if node.value is None:
         raise ConfigError(f"{node.source}: task: required section is missing")
-    node.reject_unknown({"max_steps", "start_altitude_m", "action", "observation", "reward", "end"})
+    node.reject_unknown({"max_steps", "start_altitude_m", "action", "observation", "reward", "end", "render"})
     observation = parse_observation(node.get("observation"), limits)
     return TaskConfig(
         max_steps=node.get("max_steps").integer(minimum=1, maximum=100_000),
@@ -138,4 +172,5 @@ def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
         rewards=tuple(parse_rewards(node.get("reward"))),
         end=_parse_end(node.get("end", {})),
         source=node.source,
+        render=_parse_render(node.get("render", {})),
     )

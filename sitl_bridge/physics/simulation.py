@@ -83,10 +83,12 @@ class Simulation:
         step_us: physics step in integer microseconds; None (default) takes the world's
             `physics.step_us`, itself 4000 (PX4's 250 Hz lockstep) unless the world says otherwise.
         gui: open pybullet's GUI instead of DIRECT (one GUI per process).
+        visual: give the bodies coloured visual shapes (for offscreen pictures, see
+            `physics.render`); always on with the GUI, off otherwise (nothing to draw: faster).
     """
 
     def __init__(self, world: World, *, seed: int = 0, step_us: int | None = None, gui: bool = False,
-                 params: IrisParams | None = None) -> None:
+                 params: IrisParams | None = None, visual: bool = False) -> None:
         self.world = world
         self.step_us = int(step_us if step_us is not None else world.physics.step_us)
         if self.step_us <= 0:
@@ -94,6 +96,9 @@ class Simulation:
         self.step_s = self.step_us * 1e-6
         self._inv_step_s = 1.0 / self.step_s
         self.gui = gui
+        self.visual = gui or visual
+        self.build_count = 0
+        """How many times the world was (re)built in pybullet (renderers re-add their markers)."""
         self.params = params or IrisParams()
         self.gravity_m_s2 = world.physics.gravity_m_s2
         self.num_vehicles = world.num_vehicles
@@ -260,12 +265,13 @@ class Simulation:
         self._layout = realize(world, self._rng)
         mover_rng = np.random.default_rng(int(self._rng.integers(2**63)))
         p.resetSimulation(physicsClientId=cid)
+        self.build_count += 1
         p.setGravity(0.0, 0.0, -self.gravity_m_s2, physicsClientId=cid)
         p.setPhysicsEngineParameter(fixedTimeStep=self.step_s, numSubSteps=0,
                                     numSolverIterations=world.physics.solver_iterations,
                                     deterministicOverlappingPairs=0, physicsClientId=cid)
         self._body_kind: dict[int, tuple[str, str]] = {}
-        self._ground = create_ground(cid, visual=self.gui) if world.ground else -2
+        self._ground = create_ground(cid, visual=self.visual) if world.ground else -2
         self._body_kind[self._ground] = ("ground", "ground")
         self._obstacle_bodies: dict[str, int] = {}
         self._movers: list[tuple[int, Patrol | RandomLegs]] = []
@@ -281,7 +287,7 @@ class Simulation:
                 pose = mover.pose()
                 position, yaw = pose.position_m, pose.yaw_rad
             body = create_obstacle(cid, placement.shape, position, yaw, spec.color_rgba,
-                                   mass_kg=spec.mass_kg if mover is not None else 0.0, visual=self.gui)
+                                   mass_kg=spec.mass_kg if mover is not None else 0.0, visual=self.visual)
             self._obstacle_bodies[spec.name] = body
             self._body_kind[body] = ("obstacle", spec.name)
             if mover is not None:
@@ -298,7 +304,7 @@ class Simulation:
             grounded = world.ground and z < rest_z + GROUND_SNAP_M
             on_ground.append(grounded)
             v.body = create_vehicle(cid, self.params, (x, y, rest_z if grounded else z),
-                                    self._layout.spawn_yaws_rad[v.index], visual=self.gui)
+                                    self._layout.spawn_yaws_rad[v.index], visual=self.visual)
             self._body_kind[v.body] = ("vehicle", v.name)
         if any(on_ground):
             self._settle(on_ground)

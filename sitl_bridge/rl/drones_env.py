@@ -79,6 +79,10 @@ class DronesEnv:
         self.live = [i for i in self.live if not (result.terminated.get(i) or result.truncated.get(i))]
         return result
 
+    def render(self) -> Any:
+        """The env's `render()` (an RGB frame with `render_mode="rgb_array"`)."""
+        return self.env.render()
+
     def close(self) -> None:
         self.env.close()
 

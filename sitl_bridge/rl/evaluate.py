@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -55,24 +56,27 @@ def summarize(world: str, episodes: int, traces: list[Trace]) -> EvalResult:
 
 
 def evaluate_policy(policy: Callable[[np.ndarray], int], env_factory: EnvFactory, *, world: str,
-                    episodes: int, seed: int = 0, progress: bool = False) -> tuple[EvalResult, list[Trace]]:
+                    episodes: int, seed: int = 0, progress: bool = False,
+                    videos: Any = None) -> tuple[EvalResult, list[Trace]]:
     """Fly `policy` greedily for `episodes` episodes on fresh seeds, in a new env."""
     env = DronesEnv(env_factory(seed))
     try:
-        return evaluate_on(env, policy, world=world, episodes=episodes, seed=seed, progress=progress)
+        return evaluate_on(env, policy, world=world, episodes=episodes, seed=seed, progress=progress,
+                           videos=videos)
     finally:
         env.close()
 
 
 def evaluate_on(env: DronesEnv, policy: Callable[[np.ndarray], int], *, world: str, episodes: int,
-                seed: int = 0, progress: bool = False, desc: str = "evaluation") -> tuple[EvalResult, list[Trace]]:
+                seed: int = 0, progress: bool = False, desc: str = "evaluation",
+                videos: Any = None) -> tuple[EvalResult, list[Trace]]:
     """Fly `policy` greedily for `episodes` episodes on evaluation seeds in an open env
-    (with `progress`, a bar or periodic lines on stderr)."""
+    (with `progress`, a bar or periodic lines on stderr; with `videos`, recorded)."""
     with Progress(episodes, desc, enabled=progress) as bar:
         def count(traces: list[Trace]) -> None:
             bar.update(1, success=f"{np.mean([t.outcome == 'goal' for t in traces]):.0%}")
 
-        traces = rollout(env, policy, eval_seeds(seed, episodes), on_episode=count)
+        traces = rollout(env, policy, eval_seeds(seed, episodes), on_episode=count, videos=videos)
     return summarize(world, episodes, traces), traces
 
 
@@ -103,8 +107,17 @@ def constant_action_baseline(env: DronesEnv, *, world: str, episodes: int, seed:
 
 
 def evaluate_checkpoint(checkpoint: str | Path, world: str | Path, *, episodes: int, autopilot: str = "direct",
-                        seed: int = 0, progress: bool = False) -> tuple[EvalResult, list[Trace]]:
-    """Greedy evaluation of a checkpoint (file or run directory) in the scenario `world`."""
+                        seed: int = 0, progress: bool = False,
+                        video_dir: str | Path | None = None) -> tuple[EvalResult, list[Trace]]:
+    """Greedy evaluation of a checkpoint (file or run directory) in the scenario `world`
+    (with `video_dir`: one MP4 per episode there)."""
     policy = policy_from_checkpoint(checkpoint)
-    return evaluate_policy(policy, scenario_env_factory(world, autopilot), world=str(world),
-                           episodes=episodes, seed=seed, progress=progress)
+    if video_dir is None:
+        return evaluate_policy(policy, scenario_env_factory(world, autopilot), world=str(world),
+                               episodes=episodes, seed=seed, progress=progress)
+    from sitl_bridge.envs.scenario import load_scenario
+    from sitl_bridge.rl.video import EpisodeVideos
+
+    videos = EpisodeVideos.into_folder(video_dir, load_scenario(world).task.render.fps)
+    return evaluate_policy(policy, scenario_env_factory(world, autopilot, render_mode="rgb_array"),
+                           world=str(world), episodes=episodes, seed=seed, progress=progress, videos=videos)

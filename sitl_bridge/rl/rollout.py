@@ -39,12 +39,15 @@ def _position(info: dict[str, Any]) -> list[float] | None:
 
 
 def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable[int],
-            on_episode: Callable[[list[Trace]], None] | None = None) -> list[Trace]:
+            on_episode: Callable[[list[Trace]], None] | None = None, videos: Any = None) -> list[Trace]:
     """One episode per seed, every drone acting with `policy`; one Trace per drone per episode.
-    `on_episode(traces)` runs after each episode with that episode's traces (progress, logs)."""
+    `on_episode(traces)` runs after each episode with that episode's traces (progress, logs);
+    `videos` (`rl.video.EpisodeVideos`) gets the env's rendered frame after reset and each step."""
     traces: list[Trace] = []
     for episode, seed in enumerate(seeds):
         obs, infos = env.reset(seed)
+        if videos is not None:
+            videos.add(env.render())
         mine = {i: Trace(episode, i, seed) for i in range(env.num_drones)}
         for i, trace in mine.items():
             start = _position(infos.get(i, {}))
@@ -55,6 +58,8 @@ def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable
         while env.live:
             chosen = {i: policy(obs[i]) for i in env.live}
             result = env.step(chosen)
+            if videos is not None:
+                videos.add(env.render())
             for i, action in chosen.items():
                 info = result.infos.get(i, {})
                 trace = mine[i]
@@ -67,6 +72,8 @@ def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable
                     trace.outcome = episode_outcome(info, result.terminated[i], result.truncated[i])
             obs.update(result.obs)
         traces.extend(mine.values())
+        if videos is not None:
+            videos.end_episode(episode)
         if on_episode is not None:
             on_episode(list(mine.values()))
     return traces

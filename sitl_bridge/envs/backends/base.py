@@ -23,13 +23,14 @@ Backends are built as `Backend(world, options, start_altitude_m=...)` with the e
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
 from sitl_bridge.physics import VehicleState
+from sitl_bridge.physics.simulation import Simulation
 from sitl_bridge.sensors.lidar import LidarScan
 from sitl_bridge.world import GoalPlacement
 
@@ -70,6 +71,9 @@ class Snapshot:
     """Per vehicle: its goal region this episode (randomised per the world)."""
 
 
+T = TypeVar("T")
+
+
 @runtime_checkable
 class Backend(Protocol):
     """What `SitlEnv` / `SitlParallelEnv` need from a simulator + autopilots."""
@@ -88,4 +92,8 @@ class Backend(Protocol):
 
     def close(self) -> None:
         """Release everything the backend opened (processes, ports, physics). Idempotent."""
+        ...
+
+    def with_simulation(self, use: Callable[[Simulation], T]) -> T:
+        """`use(simulation)` while it is held and safe to read from this thread (rendering)."""
         ...

@@ -56,7 +56,8 @@ class DirectBackend:
         self.world = world
         self.num_drones = world.num_vehicles
         self.start_altitude_m = float(start_altitude_m)
-        self.sim = Simulation(world, seed=seed, step_us=None, gui=options.gui)  # world's step, as SimSession
+        self.sim = Simulation(world, seed=seed, step_us=None, gui=options.uses_gui,
+                              visual=options.render_mode is not None)  # world's step, as SimSession
         self.lidar = Lidar(self.sim, [v.lidar for v in world.vehicles])
         self.sensors = [SensorSuite(world.home, seed=sensor_seed(seed, i), step_us=self.sim.step_us)
                         for i in range(self.num_drones)]
@@ -98,6 +99,10 @@ class DirectBackend:
             self.sim.close()
 
     # -- the loop -------------------------------------------------------------------------
+    def with_simulation(self, use):  # noqa: ANN001, ANN201 - see Backend.with_simulation
+        """`use(simulation)`: the simulation runs in this thread, so it is always safe."""
+        return use(self.sim)
+
     def steps_for(self, seconds: float, *, exact: bool = True) -> int:
         """Physics steps in `seconds` (`world.clock.whole_steps`, as the lockstep's run_for)."""
         return whole_steps(seconds, self.sim.step_us, exact=exact)

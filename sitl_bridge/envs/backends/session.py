@@ -55,7 +55,8 @@ class SessionBackend:
         self.start_altitude_m = float(start_altitude_m)
         self._session_options: dict[str, Any] = dict(
             autopilot=options.autopilot, speed_factor=options.speed_factor,
-            instance_base=options.instance_base, px4_bin=options.px4_bin, gui=options.gui,
+            instance_base=options.instance_base, px4_bin=options.px4_bin, gui=options.uses_gui,
+            visual=options.render_mode is not None,
             ground_truth_estimate=options.ground_truth)
         self.session: SimSession | None = None
         self.fleet: Fleet | None = None
@@ -159,6 +160,12 @@ class SessionBackend:
                       tolerance_m=start.takeoff_tolerance_m)
         fleet.start_offboard()
         session.run_for(nearest_whole_steps_s(start.settle_s, step_us))
+
+    def with_simulation(self, use):  # noqa: ANN001, ANN201 - see Backend.with_simulation
+        """`use(simulation)` with the session's runner thread off the lockstep."""
+        session = self._session()
+        with session.exclusive():
+            return use(session.sim)
 
     # -- observation ----------------------------------------------------------------------------
     def _snapshot(self) -> Snapshot:
