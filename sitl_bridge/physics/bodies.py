@@ -80,7 +80,7 @@ def create_vehicle(client: int, params: IrisParams, position_m: Vec3, yaw_rad: f
     col = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=client)
     vis = -1
     if visual:
-        vis = p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=(0.15, 0.15, 0.2, 1.0),
+        vis = p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=(1.0, 0.55, 0.0, 1.0),  # bright: visible from afar
                                   physicsClientId=client)
     orientation = quaternion_to_pybullet(yaw_quaternion_enu_flu(yaw_rad))
     body = p.createMultiBody(params.mass_kg, col, vis, basePosition=list(position_m), baseOrientation=orientation,
