@@ -142,3 +142,40 @@ def test_gui_under_xvfb_draws_the_scene(tmp_path: Path) -> None:
     finally:
         xvfb.terminate()
         xvfb.wait(timeout=30)
+
+
+def test_lidar_rays_are_drawn_when_asked(tmp_path: Path) -> None:
+    import yaml
+
+    data = yaml.safe_load((WORLDS / "obstacle.yaml").read_text())
+    data["task"]["render"] = {"camera": "follow", "distance_m": 4.0, "lidar_rays": True, "width": 256, "height": 192}
+    path = tmp_path / "rays.yaml"
+    path.write_text(yaml.safe_dump(data))
+    env = make_env(path, render_mode="rgb_array", seed=0, estimator="ground_truth")
+    try:
+        env.reset(seed=0)
+        frame = env.render()
+        assert frame.shape == (192, 256, 3)
+        ray_pixels = np.all(frame == np.array([255, 200, 0], dtype=np.uint8), axis=2)
+        assert ray_pixels.sum() > 100
+    finally:
+        env.close()
+
+
+def test_run_policy_records_a_video_through_the_stub(tmp_path: Path, free_instance: int) -> None:
+    pytest.importorskip("imageio_ffmpeg", reason="the `video` extra is not installed")
+    import imageio.v3 as iio
+
+    run = [sys.executable, "-m", "sitl_bridge"]
+    tiny = ["--batch-size", "16", "--layers", "2", "--hidden-units", "16", "--eval-episodes", "0", "--no-progress"]
+    out = tmp_path / "runs"
+    assert subprocess.run([*run, "train", str(WORLDS / "empty.yaml"), "--episodes", "1", "--out", str(out), *tiny],
+                          capture_output=True, timeout=300).returncode == 0
+    (run_dir,) = out.iterdir()
+    video = tmp_path / "flight.mp4"
+    result = subprocess.run([*run, "run", "--policy", str(run_dir), "--speed-factor", "0", "--instance-base",
+                             str(free_instance), "--video", str(video)], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert f"video: {video}" in result.stdout
+    frames = iio.imread(video, plugin="FFMPEG")
+    assert frames.shape[0] >= 2 and frames.shape[-1] == 3
