@@ -189,14 +189,18 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     loss_ax = ax.twinx()
     losses = [rolling_mean(r["loss"][:shortest], window) for r in runs]
     if any(np.any(np.isfinite(c) & (c > 0)) for c in losses):
-        mean, low, high = mean_and_band(losses)
-        loss_ax.semilogy(x, mean, color="C4", label=f"TD loss ({smooth})")
+        # On a log axis the band is taken over log10(loss): a geometric mean and band.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            logs = [np.where(c > 0, np.log10(c), np.nan) for c in losses]
+        mean, low, high = mean_and_band(logs)
+        loss_ax.semilogy(x, 10.0 ** mean, color="C4", label=f"TD loss ({smooth})")
         if several:
-            loss_ax.fill_between(x, np.clip(low, 1e-12, None), high, color="C4", alpha=0.2, lw=0)
+            loss_ax.fill_between(x, 10.0 ** low, 10.0 ** high, color="C4", alpha=0.2, lw=0)
     loss_ax.set_ylabel("mean TD loss per update (log)")
     handles = ax.get_legend_handles_labels()
     loss_handles = loss_ax.get_legend_handles_labels()
-    ax.legend(handles[0] + loss_handles[0], handles[1] + loss_handles[1], loc="upper right", fontsize=8)
+    ax.legend(handles[0] + loss_handles[0], handles[1] + loss_handles[1], loc="lower left", fontsize=8,
+              framealpha=0.9)
     ax.set_title("exploration and loss", fontsize=10)
 
     title = dirs[0].name if not several else f"{len(dirs)} runs: " + ", ".join(d.name for d in dirs[:4]) + \
