@@ -7,6 +7,7 @@ phase), then builds each drone's view, observation, reward terms and episode end
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,6 +20,7 @@ from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend, Snapshot
 from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.envs.scenario import Scenario
+from sitl_bridge.envs.task import EndConfig
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.frames import quat_to_euler
 from sitl_bridge.world import GoalPlacement
@@ -36,6 +38,12 @@ class DroneResult:
     terminated: bool
     truncated: bool
     info: dict[str, Any] = field(default_factory=dict)
+
+
+def _ground_contact(view: DroneView, end: EndConfig) -> bool:
+    """Touching the ground while flying: a crash unless the drone is landing inside its goal."""
+    return (end.crash_on_ground and not view.reached_goal
+            and float(view.position_enu_m[2]) < end.ground_contact_m)
 
 
 def priorities_by_position(starts_enu_m: list[np.ndarray]) -> np.ndarray:
@@ -161,6 +169,8 @@ class EpisodeRunner:
         crashed = collided or (end.crash_on_lidar and bool(snapshot.scans[i].crash))
         view = self._view(i, snapshot, np.asarray(before.states[i].position_enu_m, dtype=float),
                           crashed=crashed)
+        if not crashed and _ground_contact(view, end):
+            view = dataclasses.replace(view, crashed=True)
         outcome: str | None = None
         if view.crashed:
             outcome = "crash"

@@ -25,6 +25,8 @@ how it is rewarded, when an episode ends, what an action means). Example::
       end:
         goal_margin_m: 0.0          # reached inside the world's goal box grown by this
         crash_on_lidar: true        # the lidar's crash flag ends the episode as a crash
+        crash_on_ground: true       # touching the ground while flying is a crash (not at the goal)
+        ground_contact_m: 0.2       # ... when the body centre is this low above the ground
       render:                       # camera of render_mode="rgb_array" and videos (all optional)
         width: 512
         height: 384
@@ -87,6 +89,13 @@ class EndConfig:
     """The lidar's crash flag (something closer than its crash distance) counts as a crash."""
     out_of_workspace: bool = True
     """Leaving the world's workspace bounds ends the episode."""
+    crash_on_ground: bool = True
+    """Ground contact while flying (body centre below `ground_contact_m`) is a crash, unless the
+    drone is inside its goal region (a landing there is not a crash). A drone sliding along the
+    ground would otherwise score as flying."""
+    ground_contact_m: float = 0.2
+    """Height of the body centre above the ground (z = 0) that counts as ground contact (an
+    iris resting on the ground has its centre at 0.06 m)."""
 
 
 @dataclass(frozen=True)
@@ -130,11 +139,14 @@ def _parse_action(node: Node, num_drones: int) -> ActionConfig:
 
 
 def _parse_end(node: Node) -> EndConfig:
-    node.reject_unknown({"goal_margin_m", "crash_on_lidar", "out_of_workspace"})
+    node.reject_unknown({"goal_margin_m", "crash_on_lidar", "out_of_workspace", "crash_on_ground",
+                         "ground_contact_m"})
     return EndConfig(
         goal_margin_m=node.get("goal_margin_m", 0.0).number(non_negative=True, maximum=1000.0),
         crash_on_lidar=node.get("crash_on_lidar", True).boolean(),
         out_of_workspace=node.get("out_of_workspace", True).boolean(),
+        crash_on_ground=node.get("crash_on_ground", True).boolean(),
+        ground_contact_m=node.get("ground_contact_m", 0.2).number(non_negative=True, maximum=5.0),
     )
 
 
