@@ -22,6 +22,8 @@ how it is rewarded, when an episode ends, what an action means). Example::
         goal_reached: 500
         per_step: -5
         crash: -100
+      priority: lower_coordinate_yields  # who has right of way (envs/priority.py), the
+                                    # `own_priority` / `other_priority` inputs
       end:
         goal_margin_m: 0.0          # reached inside the world's goal box grown by this
         crash_on_lidar: true        # the lidar's crash flag ends the episode as a crash
@@ -48,6 +50,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from sitl_bridge.envs.features import Feature, parse_observation
+from sitl_bridge.envs.priority import PRIORITY_RULES
 from sitl_bridge.envs.rewards import RewardTerm, parse_rewards
 from sitl_bridge.envs.view import ScenarioLimits
 from sitl_bridge.errors import ConfigError, Node
@@ -113,6 +116,8 @@ class TaskConfig:
     source: str = ""
     render: RenderConfig = RenderConfig()
     """Camera of `render_mode="rgb_array"` (and recorded videos)."""
+    priority: str = "lower_coordinate_yields"
+    """Right-of-way rule behind the `own_priority`/`other_priority` inputs (`envs/priority.py`)."""
 
     @property
     def observation_size(self) -> int:
@@ -174,7 +179,8 @@ def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
     """Parse a `task:` node (its path should be `task`) for a world with the given limits."""
     if node.value is None:
         raise ConfigError(f"{node.source}: task: required section is missing")
-    node.reject_unknown({"max_steps", "start_altitude_m", "action", "observation", "reward", "end", "render"})
+    node.reject_unknown({"max_steps", "start_altitude_m", "action", "observation", "reward", "end",
+                         "render", "priority"})
     observation = parse_observation(node.get("observation"), limits)
     return TaskConfig(
         max_steps=node.get("max_steps").integer(minimum=1, maximum=100_000),
@@ -185,4 +191,5 @@ def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
         end=_parse_end(node.get("end", {})),
         source=node.source,
         render=_parse_render(node.get("render", {})),
+        priority=node.get("priority", PRIORITY_RULES[0]).string(PRIORITY_RULES),
     )
