@@ -15,14 +15,23 @@ Each list item is a name (`- velocity`) or a one-key mapping with options
 | `own_priority` | 1 | the drone's priority (see below) | [0, 1] |
 | `other_priority` | count | the other drones' priorities | [0, 1] |
 | `transponder` | 6*count | other drones' x, y, z, vx, vy, vz (zeros if absent) | workspace, +- max speed |
+| `travel_goal_offset` | 3 | goal minus position in the own travel frame (right, forward, up) | +- workspace diagonal |
+| `travel_velocity` | 3 | own velocity in the own travel frame | +- max speed |
+| `travel_others` | 6*count | per other drone: its position minus own, its velocity minus own, in the own travel frame (zeros if absent) | +- diagonal, +- 2 max speed |
 | `line_distance` | 1 | distance from the line through start and goal | [0, diagonal] |
 | `lidar` | rays | ray distances of the listed groups (default all three) | [0, range] |
 | `lidar_flags` | 2 | the lidar's near and crash flags (0/1) | [0, 1] |
 | `dummy` | N | zeros, to keep input sizes equal across scenarios | [-1, 1] |
 
-`count` defaults to drones-1 (at least 1). Priority: drones ranked by their start position
-(lower north, then lower east coordinate = lower priority, the thesis's "lower GPS coordinates
-hovers" rule), scaled to [0, 1]; with one drone it is 1.
+`count` defaults to drones-1 (at least 1). Priority: the rank of the drone under the scenario's
+`task.priority` rule (`envs/priority.py`; default `lower_coordinate_yields`: lower north, then
+lower east start coordinate = lower priority, the thesis's "lower GPS coordinates hovers"),
+scaled to [0, 1]; with one drone it is 1.
+
+The travel frame of a drone (agent-relative features): forward = the horizontal direction from
+its start to its goal (north when the goal is straight above), right = forward turned clockwise,
+up = up; the same frame as `frame: goal` actions (0 right, 3 forward), so two drones on a
+head-on course see mirror-image situations as the same numbers.
 """
 
 from __future__ import annotations
@@ -148,6 +157,42 @@ def _transponder(options: Node, limits: ScenarioLimits) -> Feature:
     return Feature("transponder", low.astype(float), high.astype(float), compute)
 
 
+def travel_frame(start_enu_m: np.ndarray, goal_enu_m: np.ndarray) -> np.ndarray:
+    """Rows right, forward, up (ENU unit vectors) of the drone's travel frame; R @ v_enu."""
+    dx, dy = float(goal_enu_m[0] - start_enu_m[0]), float(goal_enu_m[1] - start_enu_m[1])
+    length = math.hypot(dx, dy)
+    fx, fy = (0.0, 1.0) if length < 1e-6 else (dx / length, dy / length)
+    return np.array([[fy, -fx, 0.0], [fx, fy, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _travel_goal_offset(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    bound = np.full(3, limits.diagonal_m)
+    return Feature("travel_goal_offset", -bound, bound,
+                   lambda v: travel_frame(v.start_enu_m, v.goal_enu_m) @ (v.goal_enu_m - v.position_enu_m))
+
+
+def _travel_velocity(options: Node, limits: ScenarioLimits) -> Feature:
+    _no_options(options)
+    bound = np.full(3, limits.max_speed_m_s)
+    return Feature("travel_velocity", -bound, bound,
+                   lambda v: travel_frame(v.start_enu_m, v.goal_enu_m) @ v.velocity_enu_m_s)
+
+
+def _travel_others(options: Node, limits: ScenarioLimits) -> Feature:
+    count = _count(options, limits)
+    bound = np.tile(np.concatenate([np.full(3, limits.diagonal_m), np.full(3, 2 * limits.max_speed_m_s)]),
+                    count)
+
+    def compute(v: DroneView) -> np.ndarray:
+        rotation = travel_frame(v.start_enu_m, v.goal_enu_m)
+        offsets = (v.others_position_enu_m.reshape(-1, 3) - v.position_enu_m) @ rotation.T
+        closing = (v.others_velocity_enu_m_s.reshape(-1, 3) - v.velocity_enu_m_s) @ rotation.T
+        return _padded(np.hstack([offsets, closing]), count, 6).reshape(-1)
+
+    return Feature("travel_others", -bound, bound, compute)
+
+
 def distance_from_line(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     """Distance of `point` from the infinite line through `a` and `b` (from `a` if they coincide)."""
     direction = b - a
@@ -208,6 +253,9 @@ FEATURES: dict[str, Callable[[Node, ScenarioLimits], Feature]] = {
     "own_priority": _own_priority,
     "other_priority": _other_priority,
     "transponder": _transponder,
+    "travel_goal_offset": _travel_goal_offset,
+    "travel_velocity": _travel_velocity,
+    "travel_others": _travel_others,
     "line_distance": _line_distance,
     "lidar": _lidar,
     "lidar_flags": _lidar_flags,
@@ -222,9 +270,13 @@ FEATURE_MEANINGS: dict[str, tuple[str, str]] = {
     "goal_position": ("the drone's goal point x, y, z", "m"),
     "goal_offset": ("goal minus position", "m"),
     "own_id": ("drone index", "-"),
-    "own_priority": ("own priority rank, scaled (1 = highest)", "-"),
+    "own_priority": ("own priority rank under task.priority, scaled (1 = right of way)", "-"),
     "other_priority": ("the other drones' priority ranks", "-"),
     "transponder": ("per other drone: x, y, z, vx, vy, vz", "m, m/s"),
+    "travel_goal_offset": ("goal minus position: right, forward, up of the own travel direction", "m"),
+    "travel_velocity": ("own velocity: right, forward, up of the own travel direction", "m/s"),
+    "travel_others": ("per other drone: relative x, y, z and relative vx, vy, vz (right, forward, "
+                      "up of the own travel direction)", "m, m/s"),
     "line_distance": ("distance from the start-goal line", "m"),
     "lidar": ("ray distances (range when nothing is hit)", "m"),
     "lidar_flags": ("near, crash flags of the lidar", "0/1"),

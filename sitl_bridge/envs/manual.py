@@ -58,8 +58,13 @@ def describe(scenario: Scenario) -> str:
     end = task.end
     ends = ["goal region reached"]
     ends.append("collision" + (" or lidar crash flag" if end.crash_on_lidar else ""))
+    if end.crash_on_ground:
+        ends.append(f"ground contact below {end.ground_contact_m:g} m outside the goal (crash)")
     if end.out_of_workspace:
         ends.append("left the workspace")
+    if any(f.name in ("own_priority", "other_priority") for f in task.observation):
+        lines += ["", "## Priority", f"Rule `{task.priority}` (sitl_bridge/envs/priority.py): "
+                  "1 = right of way, 0 = yields."]
     lines += ["", "## Episode end",
               f"Terminated: {'; '.join(ends)}. Truncated: after {task.max_steps} steps.", ""]
     return "\n".join(lines)

@@ -13,6 +13,7 @@ scale and options (`closer_to_goal: {scale: 10, mode: binary}`). The step reward
 | `near_obstacle` | 1 when the lidar's near flag is set (and the drone did not crash) |
 | `crash` | 1 on a crash (collision, or the lidar crash flag when enabled) |
 | `out_of_workspace` | 1 when the drone left the workspace |
+| `separation` | `max(0, 1 - d / distance_m)` for the nearest other drone at distance d (0 beyond `distance_m`, default 3 m, 1 when touching): give it a negative scale to keep drones apart |
 
 Thesis ratios (chapter 5.3): closer +10..+20, goal +500..+1000, per step -5..-10, near -10..-50,
 crash -100..-500. Keep penalties on the scale of the other terms (a -1e12 crash made NaN weights).
@@ -22,6 +23,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+
+import numpy as np
 
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.errors import ConfigError, Node
@@ -72,6 +75,17 @@ def out_of_workspace(view: DroneView) -> float:
     return 1.0 if view.out_of_workspace else 0.0
 
 
+def separation(distance_m: float) -> Callable[[DroneView], float]:
+    """Closeness of the nearest other drone: 1 - d / distance_m inside distance_m, else 0."""
+    def term(view: DroneView) -> float:
+        others = view.others_position_enu_m.reshape(-1, 3)
+        if others.shape[0] == 0:
+            return 0.0
+        nearest = float(np.min(np.linalg.norm(others - view.position_enu_m, axis=1)))
+        return max(0.0, 1.0 - nearest / distance_m)
+    return term
+
+
 _SIMPLE_TERMS: dict[str, Callable[[DroneView], float]] = {
     "goal_reached": goal_reached,
     "per_step": per_step,
@@ -79,7 +93,7 @@ _SIMPLE_TERMS: dict[str, Callable[[DroneView], float]] = {
     "crash": crash,
     "out_of_workspace": out_of_workspace,
 }
-TERM_NAMES = ("closer_to_goal", *_SIMPLE_TERMS)
+TERM_NAMES = ("closer_to_goal", "separation", *_SIMPLE_TERMS)
 
 
 def _scale(node: Node) -> float:
@@ -97,6 +111,12 @@ def _parse_term(name: str, node: Node) -> RewardTerm:
             return RewardTerm(name, scale, progress_toward_goal)
         min_progress = node.get("min_progress_m", 0.1).number(non_negative=True, maximum=1000.0)
         return RewardTerm(name, scale, closer_binary(min_progress))
+    if name == "separation":
+        if not isinstance(node.value, dict):
+            return RewardTerm(name, _scale(node), separation(3.0))
+        node.reject_unknown({"scale", "distance_m"})
+        return RewardTerm(name, _scale(node.get("scale")),
+                          separation(node.get("distance_m", 3.0).number(positive=True, maximum=100.0)))
     if isinstance(node.value, dict):
         node.reject_unknown({"scale"})
         node = node.get("scale")

@@ -7,6 +7,7 @@ phase), then builds each drone's view, observation, reward terms and episode end
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -18,7 +19,9 @@ from sitl_bridge.envs.actions import action_velocity
 from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend, Snapshot
 from sitl_bridge.envs.options import EnvOptions
+from sitl_bridge.envs.priority import priorities
 from sitl_bridge.envs.scenario import Scenario
+from sitl_bridge.envs.task import EndConfig
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.frames import quat_to_euler
 from sitl_bridge.world import GoalPlacement
@@ -38,20 +41,10 @@ class DroneResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def priorities_by_position(starts_enu_m: list[np.ndarray]) -> np.ndarray:
-    """Priority in [0, 1] per drone: ranked by start (north, then east); lowest = 0.
-
-    The thesis's rule 5: "the one with the lower GPS coordinates hovers" - an explicit,
-    position-based priority instead of the drone id that biased its TW agent.
-    """
-    n = len(starts_enu_m)
-    if n == 1:
-        return np.ones(1)
-    order = sorted(range(n), key=lambda i: (float(starts_enu_m[i][1]), float(starts_enu_m[i][0]), i))
-    ranks = np.empty(n)
-    for rank, i in enumerate(order):
-        ranks[i] = rank / (n - 1)
-    return ranks
+def _ground_contact(view: DroneView, end: EndConfig) -> bool:
+    """Touching the ground while flying: a crash unless the drone is landing inside its goal."""
+    return (end.crash_on_ground and not view.reached_goal
+            and float(view.position_enu_m[2]) < end.ground_contact_m)
 
 
 def _inside(goal: GoalPlacement, position: np.ndarray, margin_m: float) -> bool:
@@ -74,7 +67,6 @@ class EpisodeRunner:
         self._snapshot: Snapshot | None = None
         self._starts: list[np.ndarray] = []
         self._goals: list[np.ndarray] = []
-        self._priorities = np.ones(self.num_drones)
         self._last: list[DroneResult] = []
 
     @classmethod
@@ -105,7 +97,6 @@ class EpisodeRunner:
         self.outcomes = [None] * self.num_drones
         self._starts = [np.array(s.position_enu_m, dtype=float) for s in snapshot.states]
         self._goals = [np.array(g.center_m, dtype=float) for g in snapshot.goals]
-        self._priorities = priorities_by_position(self._starts)
         results = []
         for i in range(self.num_drones):
             view = self._view(i, snapshot, self._starts[i], crashed=False)
@@ -161,6 +152,8 @@ class EpisodeRunner:
         crashed = collided or (end.crash_on_lidar and bool(snapshot.scans[i].crash))
         view = self._view(i, snapshot, np.asarray(before.states[i].position_enu_m, dtype=float),
                           crashed=crashed)
+        if not crashed and _ground_contact(view, end):
+            view = dataclasses.replace(view, crashed=True)
         outcome: str | None = None
         if view.crashed:
             outcome = "crash"
@@ -187,6 +180,8 @@ class EpisodeRunner:
         position = np.asarray(state.position_enu_m, dtype=float)
         others = [j for j in range(self.num_drones) if j != i]
         workspace = self.scenario.world.workspace
+        ranks = priorities(self.scenario.task.priority, self._starts,
+                           [np.asarray(s.position_enu_m, dtype=float) for s in snapshot.states], self._goals)
         return DroneView(
             index=i,
             position_enu_m=position,
@@ -196,8 +191,8 @@ class EpisodeRunner:
             start_enu_m=self._starts[i],
             goal_enu_m=self._goals[i],
             lidar={"horizontal": scan.horizontal_m, "up": scan.up_m, "down": scan.down_m},
-            priority=float(self._priorities[i]),
-            other_priorities=self._priorities[others],
+            priority=float(ranks[i]),
+            other_priorities=ranks[others],
             others_position_enu_m=np.array([snapshot.states[j].position_enu_m for j in others],
                                            dtype=float).reshape(-1, 3),
             others_velocity_enu_m_s=np.array([snapshot.states[j].velocity_enu_m_s for j in others],

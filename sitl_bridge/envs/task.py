@@ -22,9 +22,13 @@ how it is rewarded, when an episode ends, what an action means). Example::
         goal_reached: 500
         per_step: -5
         crash: -100
+      priority: lower_coordinate_yields  # who has right of way (envs/priority.py), the
+                                    # `own_priority` / `other_priority` inputs
       end:
         goal_margin_m: 0.0          # reached inside the world's goal box grown by this
         crash_on_lidar: true        # the lidar's crash flag ends the episode as a crash
+        crash_on_ground: true       # touching the ground while flying is a crash (not at the goal)
+        ground_contact_m: 0.2       # ... when the body centre is this low above the ground
       render:                       # camera of render_mode="rgb_array" and videos (all optional)
         width: 512
         height: 384
@@ -46,6 +50,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from sitl_bridge.envs.features import Feature, parse_observation
+from sitl_bridge.envs.priority import PRIORITY_RULES
 from sitl_bridge.envs.rewards import RewardTerm, parse_rewards
 from sitl_bridge.envs.view import ScenarioLimits
 from sitl_bridge.errors import ConfigError, Node
@@ -87,6 +92,13 @@ class EndConfig:
     """The lidar's crash flag (something closer than its crash distance) counts as a crash."""
     out_of_workspace: bool = True
     """Leaving the world's workspace bounds ends the episode."""
+    crash_on_ground: bool = True
+    """Ground contact while flying (body centre below `ground_contact_m`) is a crash, unless the
+    drone is inside its goal region (a landing there is not a crash). A drone sliding along the
+    ground would otherwise score as flying."""
+    ground_contact_m: float = 0.2
+    """Height of the body centre above the ground (z = 0) that counts as ground contact (an
+    iris resting on the ground has its centre at 0.06 m)."""
 
 
 @dataclass(frozen=True)
@@ -104,6 +116,8 @@ class TaskConfig:
     source: str = ""
     render: RenderConfig = RenderConfig()
     """Camera of `render_mode="rgb_array"` (and recorded videos)."""
+    priority: str = "lower_coordinate_yields"
+    """Right-of-way rule behind the `own_priority`/`other_priority` inputs (`envs/priority.py`)."""
 
     @property
     def observation_size(self) -> int:
@@ -130,11 +144,14 @@ def _parse_action(node: Node, num_drones: int) -> ActionConfig:
 
 
 def _parse_end(node: Node) -> EndConfig:
-    node.reject_unknown({"goal_margin_m", "crash_on_lidar", "out_of_workspace"})
+    node.reject_unknown({"goal_margin_m", "crash_on_lidar", "out_of_workspace", "crash_on_ground",
+                         "ground_contact_m"})
     return EndConfig(
         goal_margin_m=node.get("goal_margin_m", 0.0).number(non_negative=True, maximum=1000.0),
         crash_on_lidar=node.get("crash_on_lidar", True).boolean(),
         out_of_workspace=node.get("out_of_workspace", True).boolean(),
+        crash_on_ground=node.get("crash_on_ground", True).boolean(),
+        ground_contact_m=node.get("ground_contact_m", 0.2).number(non_negative=True, maximum=5.0),
     )
 
 
@@ -162,7 +179,8 @@ def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
     """Parse a `task:` node (its path should be `task`) for a world with the given limits."""
     if node.value is None:
         raise ConfigError(f"{node.source}: task: required section is missing")
-    node.reject_unknown({"max_steps", "start_altitude_m", "action", "observation", "reward", "end", "render"})
+    node.reject_unknown({"max_steps", "start_altitude_m", "action", "observation", "reward", "end",
+                         "render", "priority"})
     observation = parse_observation(node.get("observation"), limits)
     return TaskConfig(
         max_steps=node.get("max_steps").integer(minimum=1, maximum=100_000),
@@ -173,4 +191,5 @@ def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
         end=_parse_end(node.get("end", {})),
         source=node.source,
         render=_parse_render(node.get("render", {})),
+        priority=node.get("priority", PRIORITY_RULES[0]).string(PRIORITY_RULES),
     )

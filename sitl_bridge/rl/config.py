@@ -86,6 +86,20 @@ class TrainConfig:
     """Width of every hidden layer (PReLU activations)."""
     max_grad_norm: float = 0.0
     """Clip the gradient norm to this value; 0 = no clipping."""
+    n_step: int = 1
+    """n-step returns: each target sums n discounted rewards before bootstrapping (1 = thesis)."""
+    dueling: bool = False
+    """Dueling network head: Q(s, a) = V(s) + A(s, a) - mean of A over the actions."""
+    prioritized_replay: bool = False
+    """Prioritized replay: sample transitions by |TD error|^per_alpha, weight by importance."""
+    per_alpha: float = 0.6
+    """Prioritized replay: how strongly priorities shape sampling (0 = uniform)."""
+    per_beta: float = 0.4
+    """Prioritized replay: importance-weight exponent at the start, annealed to 1 at the end."""
+    per_epsilon: float = 1e-3
+    """Prioritized replay: added to |TD error| so that no transition has zero probability."""
+    normalize_observations: bool = False
+    """Normalise the network's inputs by the running mean and variance of the observations."""
     eval_episodes: int = 20
     """Greedy evaluation episodes after training and at every eval_every (0 = none)."""
     eval_every: int = 0
@@ -137,6 +151,10 @@ class TrainConfig:
             ("layers", 1 <= self.layers <= 32, "an integer in [1, 32]"),
             ("hidden_units", 1 <= self.hidden_units <= 8192, "an integer in [1, 8192]"),
             ("max_grad_norm", self.max_grad_norm >= 0.0, "a non-negative number"),
+            ("n_step", 1 <= self.n_step <= 100, "an integer in [1, 100]"),
+            ("per_alpha", 0.0 <= self.per_alpha <= 1.0, "a number in [0, 1]"),
+            ("per_beta", 0.0 <= self.per_beta <= 1.0, "a number in [0, 1]"),
+            ("per_epsilon", 0.0 < self.per_epsilon <= 1e3, "a number in (0, 1000]"),
             ("eval_episodes", 0 <= self.eval_episodes <= 100_000, "an integer in [0, 100000]"),
             ("eval_every", 0 <= self.eval_every <= MAX_EPISODES, f"an integer in [0, {MAX_EPISODES}]"),
             ("stop_on_success", 0.0 <= self.stop_on_success <= 1.0, "a number in [0, 1]"),

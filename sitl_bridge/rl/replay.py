@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from sitl_bridge.rl.dqn import Batch
+from sitl_bridge.rl.prioritized import Priorities
 
 
 def transition_dtype(obs_dim: int) -> np.dtype:
@@ -25,9 +26,11 @@ def transition_dtype(obs_dim: int) -> np.dtype:
 
 
 class ReplayBuffer:
-    """Ring buffer of the last `capacity` transitions; uniform mini-batch sampling."""
+    """Ring buffer of the last `capacity` transitions; uniform mini-batch sampling, or
+    proportional to priority when `priorities` is given (prioritized replay)."""
 
-    def __init__(self, capacity: int, obs_dim: int) -> None:
+    def __init__(self, capacity: int, obs_dim: int, priorities: Priorities | None = None) -> None:
+        self.priorities = priorities
         self.capacity = capacity
         self.obs_dim = obs_dim
         self.dtype = transition_dtype(obs_dim)
@@ -59,6 +62,8 @@ class ReplayBuffer:
             chunk = rows[start:start + self.capacity]
             slots = (self.total_added + np.arange(len(chunk))) % self.capacity
             self.rows[slots] = chunk
+            if self.priorities is not None:
+                self.priorities.added(slots)
             self.total_added += len(chunk)
 
     def restore(self, rows: np.ndarray, total_added: int) -> None:
@@ -75,6 +80,16 @@ class ReplayBuffer:
             index = (self.first_row + index) % self.capacity
         picked = self.rows[index]
         return rows_to_batch(picked, device)
+
+    def sample_prioritized(self, batch_size: int, beta: float, rng: np.random.Generator,
+                           device: torch.device | str = "cpu") -> Batch:
+        """A mini-batch drawn by priority, with its slots and importance weights."""
+        assert self.priorities is not None, "sample_prioritized needs a buffer with priorities"
+        slots, weights = self.priorities.sample(len(self), batch_size, beta, rng)
+        batch = rows_to_batch(self.rows[slots], device)
+        batch.slots = slots
+        batch.weights = torch.as_tensor(weights.astype(np.float32), device=device)
+        return batch
 
 
 def rows_to_batch(rows: np.ndarray, device: torch.device | str = "cpu") -> Batch:

@@ -52,6 +52,8 @@ from sitl_bridge.rl.evaluate import (
     evaluate_on,
 )
 from sitl_bridge.rl.metrics import TensorBoardLog
+from sitl_bridge.rl.nstep import NStepFolder, Step
+from sitl_bridge.rl.prioritized import Priorities
 from sitl_bridge.rl.progress import Progress
 from sitl_bridge.rl.replay import ReplayBuffer
 from sitl_bridge.rl.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
@@ -109,9 +111,12 @@ class Trainer:
         random.seed(spec.seed)
         torch.manual_seed(spec.seed)
         self.rng = np.random.default_rng(spec.seed)
-        shape = NetworkShape(self.env.obs_dim, self.env.n_actions, config.layers, config.hidden_units)
+        shape = NetworkShape(self.env.obs_dim, self.env.n_actions, config.layers, config.hidden_units,
+                             dueling=config.dueling, normalize=config.normalize_observations)
         self.agent = DQNAgent(shape, config, self.device)
-        self.replay = ReplayBuffer(config.replay_capacity, shape.obs_dim)
+        priorities = (Priorities(config.replay_capacity, config.per_alpha, config.per_epsilon)
+                      if config.prioritized_replay else None)
+        self.replay = ReplayBuffer(config.replay_capacity, shape.obs_dim, priorities)
         self.store = ReplayStore(self.run_dir / rd.REPLAY, shape.obs_dim, config.replay_segment_rows)
         self.episode_log = EpisodeLog(self.run_dir / rd.EPISODES_FILE)
         self.checkpoint_dir = self.run_dir / rd.CHECKPOINTS
@@ -211,6 +216,10 @@ class Trainer:
         tensors.update({f"target.{k}": v for k, v in self.agent.target.state_dict().items()})
         tensors["optimizer"] = torch.frombuffer(bytearray(buffer.getvalue()), dtype=torch.uint8)
         tensors["rng.torch"] = torch.get_rng_state()
+        if self.replay.priorities is not None:
+            tensors["replay.priorities"] = torch.from_numpy(self.replay.priorities.values.copy())
+            tensors["replay.max_priority"] = torch.tensor(self.replay.priorities.max_priority,
+                                                          dtype=torch.float64)
         return tensors
 
     def _state_json(self, log_bytes: int) -> dict[str, Any]:
@@ -256,6 +265,9 @@ class Trainer:
         self.agent.optimizer.load_state_dict(optimizer_state)
         torch.set_rng_state(tensors["rng.torch"])
         self.replay.restore(rows, state["replay"]["total_rows"])
+        if self.replay.priorities is not None and "replay.priorities" in tensors:
+            self.replay.priorities.values[:] = tensors["replay.priorities"].numpy()
+            self.replay.priorities.max_priority = float(tensors["replay.max_priority"])
         self.episode_log.truncate(state["log_bytes"])
         self.episode = state["episode"]
         self.global_step = state["global_step"]
@@ -371,6 +383,8 @@ class Trainer:
         env_seed = episode_seed(self.spec.seed, self.episode)
         epsilon_start = self.epsilon()
         obs, reset_infos = self.env.reset(env_seed)
+        agent.observe(np.stack(list(obs.values())))
+        folder = NStepFolder(config.n_step, config.gamma) if config.n_step > 1 else None
         # The env's clock may include the take-off before the first step: count from reset.
         sim_start = sim_time_s(reset_infos.get(0, {})) or 0.0
         drones = range(self.env.num_drones)
@@ -397,16 +411,21 @@ class Trainer:
                 if result.terminated[i] or result.truncated[i]:
                     outcome[i] = episode_outcome(info, result.terminated[i], result.truncated[i])
                     final_info[i] = info
-            rows = self.replay.make_rows(
-                np.stack([obs[i] for i in chosen]), np.array(list(chosen.values())),
-                np.array([result.rewards[i] for i in chosen]), np.stack([result.obs[i] for i in chosen]),
-                np.array([float(result.terminated[i]) for i in chosen]))
-            self.replay.add_rows(rows)
-            new_rows.append(rows)
+            if folder is None:
+                rows = self.replay.make_rows(
+                    np.stack([obs[i] for i in chosen]), np.array(list(chosen.values())),
+                    np.array([result.rewards[i] for i in chosen]), np.stack([result.obs[i] for i in chosen]),
+                    np.array([float(result.terminated[i]) for i in chosen]))
+            else:
+                rows = self._fold_n_step(folder, chosen, obs, result)
+            if len(rows):
+                self.replay.add_rows(rows)
+                new_rows.append(rows)
+            agent.observe(np.stack([result.obs[i] for i in chosen]))
             obs.update(result.obs)
             if (len(self.replay) >= max(config.batch_size, config.learning_starts)
                     and self.global_step % config.train_every == 0):
-                losses.append(agent.update(self.replay.sample(config.batch_size, self.rng, self.device)))
+                losses.append(self._learn_step())
                 self.updates += 1
                 if config.target_update_unit == "steps" and self.updates % config.target_update_period == 0:
                     agent.align_target()
@@ -428,6 +447,35 @@ class Trainer:
             self.store.append(np.concatenate(new_rows))
         self.episode_log.append(records)
         return records
+
+    def _fold_n_step(self, folder: NStepFolder, chosen: dict[int, int], obs: dict[int, np.ndarray],
+                     result: Any) -> np.ndarray:
+        """This step's transitions folded into the n-step rows that are complete now."""
+        ready = []
+        for i, action in chosen.items():
+            step = Step(obs[i], action, float(result.rewards[i]), result.obs[i], bool(result.terminated[i]))
+            ready += folder.push(i, step, bool(result.terminated[i] or result.truncated[i]))
+        if not ready:
+            return self.replay.make_rows(np.zeros((0, self.agent.shape.obs_dim)), np.zeros(0),
+                                         np.zeros(0), np.zeros((0, self.agent.shape.obs_dim)), np.zeros(0))
+        return self.replay.make_rows(np.stack([r.obs for r in ready]), np.array([r.action for r in ready]),
+                                     np.array([r.reward for r in ready]),
+                                     np.stack([r.next_obs for r in ready]),
+                                     np.array([r.terminated for r in ready]))
+
+    def _learn_step(self) -> float:
+        """One gradient update from the replay (by priority when prioritized replay is on)."""
+        config = self.config
+        if self.replay.priorities is None:
+            return self.agent.update(self.replay.sample(config.batch_size, self.rng, self.device))
+        # beta anneals from per_beta to 1 over the run (full bias correction at the end).
+        fraction = min(self.episode / max(config.episodes - 1, 1), 1.0)
+        beta = config.per_beta + (1.0 - config.per_beta) * fraction
+        batch = self.replay.sample_prioritized(config.batch_size, beta, self.rng, self.device)
+        loss = self.agent.update(batch)
+        assert batch.slots is not None
+        self.replay.priorities.update(batch.slots, self.agent.last_td_errors)
+        return loss
 
     def _log_tensorboard(self, records: list[EpisodeRecord]) -> None:
         if self._writer is None:
