@@ -8,6 +8,7 @@ finished, e.g. with a larger `--episodes`); `--init-from` starts from another ru
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -73,6 +74,18 @@ def _heartbeat(trainer: Trainer) -> Callable[[object], None]:
 def main(args: argparse.Namespace) -> int:
     if args.watchdog:
         return _run_watchdog(args)
+    try:
+        return _train(args)
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        # Every write is atomic (rl/atomic.py): what was saved before stays; --resume continues.
+        print(f"error: disk full writing {exc.filename or 'the run directory'}: free some space, then "
+              "`sitl-bridge train --resume RUN_DIR` continues from the last checkpoint", file=sys.stderr)
+        return 1
+
+
+def _train(args: argparse.Namespace) -> int:
     # torch and the simulator load here, not when the CLI lists its commands.
     from sitl_bridge.rl.checkpoint import CheckpointError
     from sitl_bridge.rl.trainer import ShapeMismatch
