@@ -96,6 +96,9 @@ class Watchdog:
 
     # -- the loop ------------------------------------------------------------------------
     def run(self) -> WatchdogReport:
+        """Supervise until training finishes, is refused, or restarts too often. SIGTERM ends the
+        watchdog like Ctrl-C: the child's process group is torn down first."""
+        signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
         report = WatchdogReport(exit_code=0, run_dir=None)
         argv = self.train_argv
         while True:
@@ -151,3 +154,7 @@ def _resume_argv(train_argv: list[str], run_dir: Path) -> list[str]:
             keep.append(arg)
         i += 2 if (takes_value and name.startswith("--") and name != "--no-progress") else 1
     return ["--resume", str(run_dir), *keep]
+
+
+def _raise_keyboard_interrupt(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
