@@ -8,7 +8,9 @@ finished, e.g. with a larger `--episodes`); `--init-from` starts from another ru
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from sitl_bridge.commands import add_env_autopilot_argument
@@ -29,11 +31,61 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--init-from", metavar="RUN_DIR_OR_CHECKPOINT",
                         help="start from this run's network (curriculum; epsilon from transfer_epsilon_max)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_watchdog_arguments(parser)
     add_config_arguments(parser)
     parser.set_defaults(func=main)
 
 
+def _add_watchdog_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("watchdog (rl/watchdog.py)")
+    group.add_argument("--watchdog", action="store_true",
+                       help="train in a child process; restart it from its last checkpoint when it dies or freezes")
+    group.add_argument("--freeze-timeout", type=float, default=120.0, metavar="S",
+                       help="with --watchdog: no heartbeat progress for S seconds counts as frozen (default 120)")
+    group.add_argument("--max-restarts-per-hour", type=int, default=10, metavar="N",
+                       help="with --watchdog: stop with a report after N restarts within an hour (default 10)")
+
+
+def _run_watchdog(args: argparse.Namespace) -> int:
+    from sitl_bridge.rl.watchdog import Watchdog
+
+    if args.freeze_timeout <= 0 or args.max_restarts_per_hour < 0:
+        print("error: command line: --freeze-timeout/--max-restarts-per-hour: expected positive numbers",
+              file=sys.stderr)
+        return 2
+    argv = [a for a in sys.argv[sys.argv.index("train") + 1:] if a != "--watchdog"]
+    report = Watchdog(argv, args.freeze_timeout, args.max_restarts_per_hour).run()
+    print(f"watchdog: {len(report.restarts)} restart(s)" + (f"; stopped: {report.gave_up}" if report.gave_up else "")
+          + (f"; log: {report.run_dir}/watchdog.jsonl" if report.restarts else ""), file=sys.stderr)
+    return report.exit_code
+
+
+def _heartbeat(trainer: Trainer) -> Callable[[object], None]:
+    """Write the run's heartbeat now and after every episode (for a watchdog)."""
+    from sitl_bridge.rl.heartbeat import write_heartbeat
+
+    def beat(_records: object = None) -> None:
+        write_heartbeat(trainer.run_dir, trainer.episode, trainer.global_step)
+
+    beat()
+    return beat
+
+
 def main(args: argparse.Namespace) -> int:
+    if args.watchdog:
+        return _run_watchdog(args)
+    try:
+        return _train(args)
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        # Every write is atomic (rl/atomic.py): what was saved before stays; --resume continues.
+        print(f"error: disk full writing {exc.filename or 'the run directory'}: free some space, then "
+              "`sitl-bridge train --resume RUN_DIR` continues from the last checkpoint", file=sys.stderr)
+        return 1
+
+
+def _train(args: argparse.Namespace) -> int:
     # torch and the simulator load here, not when the CLI lists its commands.
     from sitl_bridge.rl.checkpoint import CheckpointError
     from sitl_bridge.rl.trainer import ShapeMismatch
@@ -47,7 +99,7 @@ def main(args: argparse.Namespace) -> int:
         resumed = trainer.episode > 0
         print(f"run directory: {trainer.run_dir}" + (f" (resuming after episode {trainer.episode})"
                                                      if resumed else ""), file=sys.stderr)
-        result = trainer.train()
+        result = trainer.train(on_episode=_heartbeat(trainer))
         print(f"this session: {result.episodes_this_session} episodes ({result.steps_this_session} steps) in "
               f"{result.wall_time_s:.1f} s; run total: {result.episodes} of {trainer.config.episodes} episodes "
               f"({result.global_step} steps); success while exploring (last {trainer.config.success_window} "
