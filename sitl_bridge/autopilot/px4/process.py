@@ -111,6 +111,8 @@ class Px4Config:
     params: Mapping[str, Px4Param] = field(default_factory=load_param_overrides)
     sim_host: str = "127.0.0.1"
     log_cap_bytes: int = DEFAULT_LOG_CAP_BYTES
+    keep_logs: bool = True
+    """False: `run_dir` is a temp dir removed on close, so reports do not name console.log."""
 
     @classmethod
     def create(
@@ -362,9 +364,9 @@ class Px4Autopilot:
             if self._console is not None:
                 self._console.join(1.0)
             tail = self.tail()
+            where = self.console_log if self.config.keep_logs else "console log not kept: pass --run-dir to keep it"
             raise Px4Died(
-                f"PX4 instance {self.instance} exited with code {code}; last output "
-                f"({self.console_log}):\n{tail}",
+                f"PX4 instance {self.instance} exited with code {code}; last output ({where}):\n{tail}",
                 instance=self.instance, returncode=code, tail=tail,
             )
 
