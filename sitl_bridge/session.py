@@ -62,7 +62,7 @@ class SimSession:
         seed: seeds the simulation (layout, movers) and the sensor noise.
         px4_bin / px4_rootfs: PX4 SITL binary and ROMFS (`px4` only; PX4_BIN by default).
         gui: pybullet GUI. visual: coloured bodies for offscreen pictures (`physics.render`).
-        num_vehicles: override the world's vehicle count (see `with_vehicle_count`).
+        num_vehicles: override the world's count (`with_vehicle_count`).
         ground_truth_estimate: autopilots estimate from ground truth (kinds that support it).
         params: extra autopilot parameters (PX4 names), applied after px4_params/.
         run_dir: where autopilot processes keep working directories and logs (default: temp).
