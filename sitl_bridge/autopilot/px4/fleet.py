@@ -4,6 +4,7 @@ a session's `px4` autopilot kind."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
 import time
@@ -21,7 +22,7 @@ from sitl_bridge.autopilot.fleet import (
     VehicleSummary,
     link_summary,
 )
-from sitl_bridge.autopilot.px4.allocation import InstanceClaim, claim_instances
+from sitl_bridge.autopilot.px4.allocation import InstanceClaim, claim_instances, free_px4_instances
 from sitl_bridge.autopilot.px4.observer import Px4Observation
 from sitl_bridge.autopilot.px4.process import Px4Autopilot, Px4Config, Px4Died, Px4Error
 from sitl_bridge.autopilot.px4.temp_dirs import make_temp_run_dir
@@ -214,6 +215,13 @@ class Px4SitlFleet(AutopilotFleet):
         self.px4: Px4Fleet | None = None
         self._temp_run_dir: Path | None = None
         self._claim: InstanceClaim | None = None
+
+    @classmethod
+    def pick_instance_base(cls, count: int, preferred: int) -> int:
+        with contextlib.suppress(Px4Error):
+            claim_instances(range(preferred, preferred + count), ports_free=True).release()
+            return preferred
+        return free_px4_instances(count)[0]  # busy: parallel runs take the next free block
 
     def start(self, links: Sequence[Any]) -> list[Any]:
         config = self.config
