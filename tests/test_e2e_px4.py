@@ -4,6 +4,8 @@ Skipped without PX4_BIN (the `px4_bin` fixture)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from test_run_command import wait_until_serving
 from test_session import ports_released
@@ -139,3 +141,27 @@ def test_px4_exposes_only_its_two_documented_links(px4_bin: str, tmp_path) -> No
     exposed = sorted(port for address, port in binds if address not in ("127.0.0.1", "[::1]"))
     ports = vehicle_ports(instance, px4=True)
     assert exposed == sorted([ports.api_bind, ports.gcs_bind]), binds
+
+
+def test_two_drones_on_px4_through_pettingzoo(px4_bin: str) -> None:
+    """Issue 15 item 2: TE (two_drones_empty) with one PX4 process per drone, one lockstep
+    clock; both act, both episodes start from the same state after a reset."""
+    import numpy as np
+
+    from sitl_bridge.envs import make_parallel_env
+
+    env = make_parallel_env(str(Path(__file__).resolve().parents[1] / "worlds" / "two_drones_empty.yaml"), autopilot="px4", px4_bin=px4_bin, speed_factor=0, seed=0)
+    try:
+        observations, _ = env.reset(seed=3)
+        assert len(observations) == 2
+        session = env.backend.session if hasattr(env, "backend") else None
+        for _ in range(3):
+            observations, _, terminated, truncated, infos = env.step({agent: 0 for agent in env.agents})
+            if not env.agents:
+                break
+        assert all(np.all(np.isfinite(o)) for o in observations.values())
+        if session is not None:
+            pids = [a.pid for a in session.autopilots.px4.autopilots]
+            assert len(set(pids)) == 2  # one PX4 process per drone
+    finally:
+        env.close()
