@@ -180,8 +180,7 @@ class SimSession:
         return faults
 
     def check(self) -> None:
-        """Raise the first `AutopilotFault` (a `SessionError`), or a SessionError if the
-        runner thread stopped on another error."""
+        """Raise the first `AutopilotFault`, or a SessionError if the runner stopped otherwise."""
         faults = self.faults()
         if faults:
             raise faults[0]
@@ -202,8 +201,7 @@ class SimSession:
             self.autopilots.restart(lockstep)
 
     def close(self) -> None:
-        """Stop the runner, the autopilots, the links and the simulation. Idempotent; safe to
-        call after a partial start or from an exception handler."""
+        """Stop the runner, autopilots, links and simulation. Idempotent (partial starts too)."""
         if self._closed:
             return
         self._closed = True
