@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "bench",
     "train",
     "eval",
+    "transfer",
     "lr_probe",
     "curriculum",
     "plot",

@@ -12,12 +12,10 @@ Time: the session is the clock of the MAVSDK client (`run_for(seconds)` advances
 much simulated time, then holds). While held, in-process stubs keep answering MAVLink; a real
 PX4 is frozen in lockstep. After `start()` the simulation is held.
 
-Episodes: `reset(seed)` starts over in place (simulated time back to 0, vehicles re-spawned,
-sensor noise re-seeded, autopilots rebooted by their fleet's `reset`), keeping the ports, so
-MAVSDK clients stay connected. The autopilots' clock (the `time_usec` on the HIL link) keeps
-counting up across it. `take_collisions()` returns what
-the physics reported since the last call, `deliver_pending_commands()` waits (held) until
-MAVLink commands already sent have reached the in-process stubs.
+Episodes: `reset(seed)` starts over in place (time back to 0, vehicles re-spawned, sensor noise
+re-seeded, autopilots rebooted by their fleet's `reset`), keeping the ports: MAVSDK stays connected.
+The autopilots' clock (HIL `time_usec`) keeps counting up. `take_collisions()` returns what
+the physics reported since the last call.
 
 Failsafe timeouts scale with the speed factor: see `sitl_bridge.autopilot.fleet`.
 """
@@ -64,12 +62,10 @@ class SimSession:
         seed: seeds the simulation (layout, movers) and the sensor noise.
         px4_bin / px4_rootfs: PX4 SITL binary and ROMFS (`px4` only; PX4_BIN by default).
         gui: pybullet GUI. visual: coloured bodies for offscreen pictures (`physics.render`).
-        num_vehicles: override the world's vehicle count (see `with_vehicle_count`).
-        ground_truth_estimate: autopilots use ground truth instead of estimating from the
-            sensors (kinds that support it, e.g. the stub).
+        num_vehicles: override the world's count (`with_vehicle_count`).
+        ground_truth_estimate: autopilots estimate from ground truth (kinds that support it).
         params: extra autopilot parameters (PX4 names), applied after px4_params/.
-        run_dir: where autopilot processes keep their working directories and logs (default:
-            a temp dir).
+        run_dir: where autopilot processes keep working directories and logs (default: temp).
         connect_timeout_s: wall time allowed for autopilots to connect (None: forever).
         actuator_timeout_s: wall time a lockstep step waits for an autopilot's answer.
         host: address the HIL links listen on.
@@ -184,8 +180,7 @@ class SimSession:
         return faults
 
     def check(self) -> None:
-        """Raise the first `AutopilotFault` (a `SessionError`), or a SessionError if the
-        runner thread stopped on another error."""
+        """Raise the first `AutopilotFault`, or a SessionError if the runner stopped otherwise."""
         faults = self.faults()
         if faults:
             raise faults[0]
@@ -194,14 +189,19 @@ class SimSession:
             raise SessionError(f"the simulation stopped: {error}") from error
 
     def restart_autopilots(self) -> None:
-        """Held: restart every autopilot (cold boot, ready again) without touching the
-        simulation: the cure for a fault reported by `faults()` / `check()`."""
-        with self._require_runner().exclusive() as lockstep:
+        """Held: cold-restart every autopilot, simulation untouched: the cure for a fault of
+        `faults()` / `check()`, whose pending lockstep error (the dead link's) is dropped."""
+        runner = self._require_runner()
+        for _ in range(3):  # the runner may still be failing on the dead link while held
+            runner.error = None
+            with contextlib.suppress(HilError):
+                runner.hold()
+                break
+        with runner.exclusive() as lockstep:
             self.autopilots.restart(lockstep)
 
     def close(self) -> None:
-        """Stop the runner, the autopilots, the links and the simulation. Idempotent; safe to
-        call after a partial start or from an exception handler."""
+        """Stop the runner, autopilots, links and simulation. Idempotent (partial starts too)."""
         if self._closed:
             return
         self._closed = True

@@ -4,6 +4,8 @@ Skipped without PX4_BIN (the `px4_bin` fixture)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from test_run_command import wait_until_serving
 from test_session import ports_released
@@ -103,3 +105,63 @@ def test_ctrl_c_stops_px4_and_frees_its_ports(px4_bin: str) -> None:
     assert process.returncode == 130, "".join(output)
     assert _px4_pids(px4_bin, instance) == []
     assert ports_released(instance)
+
+
+def _udp_binds(pid: int) -> list[tuple[str, int]]:
+    """(address, port) of every UDP socket process `pid` has bound (`ss -lunp`)."""
+    import re
+    import subprocess
+
+    out = subprocess.run(["ss", "-lunpH"], capture_output=True, text=True, check=True).stdout
+    binds = []
+    for line in out.splitlines():
+        if f"pid={pid}," in line:
+            local = line.split()[3]
+            address, port = local.rsplit(":", 1)
+            binds.append((re.sub(r"%.*$", "", address), int(port)))
+    return binds
+
+
+def test_px4_exposes_only_its_two_documented_links(px4_bin: str, tmp_path) -> None:
+    """Issue 14 item 9: PX4's MAVLink module binds UDP links to 0.0.0.0 (hard-coded); our
+    px4-rc.mavlink starts only the GCS (18570+i) and API (14580+i) links. Nothing else of
+    PX4's listens beyond loopback (README "Network exposure")."""
+    import shutil
+
+    if shutil.which("ss") is None:
+        pytest.skip("ss (iproute2) not installed")
+    from sitl_bridge.ports import vehicle_ports
+
+    instance = _free_px4_instance()
+    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=0, instance_base=instance,
+                    run_dir=tmp_path / "run") as session:
+        session.run_for(1.0)
+        pid = session.autopilots.px4.autopilots[0].pid
+        binds = _udp_binds(pid)
+    exposed = sorted(port for address, port in binds if address not in ("127.0.0.1", "[::1]"))
+    ports = vehicle_ports(instance, px4=True)
+    assert exposed == sorted([ports.api_bind, ports.gcs_bind]), binds
+
+
+def test_two_drones_on_px4_through_pettingzoo(px4_bin: str) -> None:
+    """Issue 15 item 2: TE (two_drones_empty) with one PX4 process per drone, one lockstep
+    clock; both act, both episodes start from the same state after a reset."""
+    import numpy as np
+
+    from sitl_bridge.envs import make_parallel_env
+
+    env = make_parallel_env(str(Path(__file__).resolve().parents[1] / "worlds" / "two_drones_empty.yaml"), autopilot="px4", px4_bin=px4_bin, speed_factor=0, seed=0)
+    try:
+        observations, _ = env.reset(seed=3)
+        assert len(observations) == 2
+        session = env.backend.session if hasattr(env, "backend") else None
+        for _ in range(3):
+            observations, _, terminated, truncated, infos = env.step({agent: 0 for agent in env.agents})
+            if not env.agents:
+                break
+        assert all(np.all(np.isfinite(o)) for o in observations.values())
+        if session is not None:
+            pids = [a.pid for a in session.autopilots.px4.autopilots]
+            assert len(set(pids)) == 2  # one PX4 process per drone
+    finally:
+        env.close()

@@ -114,6 +114,12 @@ class AutopilotFleet(ABC):
         self.config = config
         self.instances = tuple(config.instances)
 
+    @classmethod
+    def pick_instance_base(cls, count: int, preferred: int) -> int:
+        """First instance for `count` vehicles of an env that does not care which: `preferred`,
+        or (kinds with few instances, e.g. px4) the first block free of other runs."""
+        return preferred
+
     # -- lifecycle ----------------------------------------------------------------------------
     @abstractmethod
     def start(self, links: Sequence[HilLink]) -> list[Pump]:

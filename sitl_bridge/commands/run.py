@@ -15,6 +15,7 @@ import sys
 import time
 
 from sitl_bridge.autopilot import registry
+from sitl_bridge.autopilot.fleet import AutopilotFault
 from sitl_bridge.autopilot.px4 import Px4Error
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil.errors import HilError
@@ -85,6 +86,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--episodes", type=int, default=1, help="episodes to fly with --policy (default 1)")
     parser.add_argument("--video", metavar="FILE.mp4", default=None,
                         help="with --policy: record what the policy did (the `video` extra)")
+    parser.add_argument("--restart-autopilot", action="store_true",
+                        help="restart a dead or frozen autopilot (stub process or PX4) and keep "
+                             "simulating, instead of exiting with status 1")
     parser.set_defaults(func=main)
 
 
@@ -149,18 +153,27 @@ def _print_banner(session: SimSession) -> None:
 
 
 def _serve(session: SimSession, args: argparse.Namespace) -> int:
-    """Run until `--duration` simulated seconds (free-running: until Ctrl-C), printing status."""
+    """Run until `--duration` simulated seconds (free-running: until Ctrl-C), printing status.
+    With `--restart-autopilot` a dead or frozen autopilot is restarted (cold boot) and the
+    simulation goes on; the restarts are logged and counted."""
     tty = sys.stdout.isatty()
-    if args.duration is not None:
-        session.run_for(nearest_whole_steps_s(args.duration, session.step_us), wait=False)
-    else:
-        session.resume()
+    end_s = None if args.duration is None else session.time_s + args.duration
+    _advance(session, end_s)
     last_line = time.monotonic()
+    restarts = 0
     while True:
-        done = session.wait_held(STATUS_PERIOD_S) if args.duration is not None else False
-        if args.duration is None:
-            time.sleep(STATUS_PERIOD_S)  # pacing the status line, not the simulation
-        session.check()  # raises if the runner or an autopilot died
+        try:
+            done = session.wait_held(STATUS_PERIOD_S) if end_s is not None else False
+            if end_s is None:
+                time.sleep(STATUS_PERIOD_S)  # pacing the status line, not the simulation
+            session.check()  # raises if the runner or an autopilot died
+        except AutopilotFault as fault:
+            if not args.restart_autopilot:
+                raise
+            restarts += 1
+            _restart(session, fault, restarts, tty)
+            _advance(session, end_s)
+            continue
         if done:
             break
         if args.quiet:
@@ -173,9 +186,31 @@ def _serve(session: SimSession, args: argparse.Namespace) -> int:
     if tty and not args.quiet:
         print()
     print(session.status_line(), flush=True)
+    restarted = f", {restarts} autopilot restart(s)" if args.restart_autopilot else ""
     print(f"done: {session.time_s:.2f} s simulated, real-time factor "
-          f"{session.overall_real_time_factor:.1f}x", flush=True)
+          f"{session.overall_real_time_factor:.1f}x{restarted}", flush=True)
     return 0
+
+
+def _advance(session: SimSession, end_s: float | None) -> None:
+    """Let the simulation run on: to `end_s` simulated seconds, or free-running."""
+    if end_s is None:
+        session.resume()
+    elif end_s > session.time_s:
+        session.run_for(nearest_whole_steps_s(end_s - session.time_s, session.step_us), wait=False)
+
+
+def _restart(session: SimSession, fault: AutopilotFault, count: int, tty: bool) -> None:
+    """Log a fault (its first line: a console tail follows in PX4's) and restart the autopilots."""
+    first_line = str(fault).splitlines()[0] if str(fault) else fault.reason
+    print(f"{chr(10) if tty else ''}[{session.time_s:8.2f} s] autopilot of vehicle {fault.instance} "
+          f"{fault.reason} ({first_line}); restarting it (restart {count})", file=sys.stderr, flush=True)
+    started = time.monotonic()
+    if session.running:
+        session.hold()
+    session.restart_autopilots()
+    print(f"[{session.time_s:8.2f} s] autopilot of vehicle {fault.instance} ready again after "
+          f"{time.monotonic() - started:.1f} s wall", file=sys.stderr, flush=True)
 
 
 def _run_demo(session: SimSession, args: argparse.Namespace) -> int:

@@ -4,9 +4,9 @@ a session's `px4` autopilot kind."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -22,8 +22,10 @@ from sitl_bridge.autopilot.fleet import (
     VehicleSummary,
     link_summary,
 )
+from sitl_bridge.autopilot.px4.allocation import InstanceClaim, claim_instances, free_px4_instances
 from sitl_bridge.autopilot.px4.observer import Px4Observation
 from sitl_bridge.autopilot.px4.process import Px4Autopilot, Px4Config, Px4Died, Px4Error
+from sitl_bridge.autopilot.px4.temp_dirs import make_temp_run_dir
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil.errors import HilError
 from sitl_bridge.ports import (
@@ -212,17 +214,27 @@ class Px4SitlFleet(AutopilotFleet):
                 f"0..{PX4_LAST_OWN_API_INSTANCE}, got {self.instances[0]}..{self.instances[-1]}")
         self.px4: Px4Fleet | None = None
         self._temp_run_dir: Path | None = None
+        self._claim: InstanceClaim | None = None
+
+    @classmethod
+    def pick_instance_base(cls, count: int, preferred: int) -> int:
+        with contextlib.suppress(Px4Error):
+            claim_instances(range(preferred, preferred + count), ports_free=True).release()
+            return preferred
+        return free_px4_instances(count)[0]  # busy: parallel runs take the next free block
 
     def start(self, links: Sequence[Any]) -> list[Any]:
         config = self.config
+        # Parallel runs never share an instance (lock files; see `allocation`).
+        self._claim = claim_instances(self.instances)
         run_dir = config.run_dir
         if run_dir is None:
             # Ours, so removed on close; pass run_dir to keep PX4's console logs.
-            run_dir = self._temp_run_dir = Path(tempfile.mkdtemp(prefix="sitl-bridge-px4-"))
+            run_dir = self._temp_run_dir = make_temp_run_dir()
         # px4 resolves px4_params/ itself (wall timeouts via env + read-back); only extras here.
         px4_config = Px4Config.create(config.px4_bin, run_dir, rootfs=config.px4_rootfs,
                                       speed_factor=config.speed_factor, home=config.world.home,
-                                      extra_params=config.params)
+                                      extra_params=config.params, keep_logs=self._temp_run_dir is None)
         self.px4 = Px4Fleet(px4_config, self.instances)
         self.px4.start()
         return []
@@ -258,6 +270,9 @@ class Px4SitlFleet(AutopilotFleet):
         if self._temp_run_dir is not None:
             shutil.rmtree(self._temp_run_dir, ignore_errors=True)
             self._temp_run_dir = None
+        if self._claim is not None:
+            self._claim.release()
+            self._claim = None
 
     def restart(self, lockstep: Any, reset_simulation: Callable[[], None] | None = None) -> None:
         try:

@@ -22,6 +22,7 @@ from typing import Any
 
 from sitl_bridge.autopilot.px4.observer import GcsObserver, Px4Observation
 from sitl_bridge.autopilot.px4.params import (
+    PARAMS_DIR,
     Px4Param,
     format_value,
     load_param_overrides,
@@ -33,6 +34,9 @@ log = logging.getLogger(__name__)
 DEFAULT_AIRFRAME = "gazebo-classic_iris"
 DEFAULT_LOG_CAP_BYTES = 20 * 1024 * 1024
 READY_LINE = "Ready for takeoff"
+RC_MAVLINK = PARAMS_DIR / "px4-rc.mavlink"
+"""Our MAVLink startup script (only the GCS and API links; see the file), found by rcS's
+`. px4-rc.mavlink` before PX4's own because its folder comes first on PX4's PATH."""
 
 
 class Px4Error(RuntimeError):
@@ -111,6 +115,8 @@ class Px4Config:
     params: Mapping[str, Px4Param] = field(default_factory=load_param_overrides)
     sim_host: str = "127.0.0.1"
     log_cap_bytes: int = DEFAULT_LOG_CAP_BYTES
+    keep_logs: bool = True
+    """False: `run_dir` is a temp dir removed on close, so reports do not name console.log."""
 
     @classmethod
     def create(
@@ -253,6 +259,8 @@ class Px4Autopilot:
         env["PX4_HOME_LAT"] = f"{config.home_lat_deg:.9f}"
         env["PX4_HOME_LON"] = f"{config.home_lon_deg:.9f}"
         env["PX4_HOME_ALT"] = f"{config.home_alt_m:.3f}"
+        if (self.work_dir / "rc" / RC_MAVLINK.name).is_file():
+            env["PATH"] = f"{self.work_dir / 'rc'}{os.pathsep}{env.get('PATH', os.defpath)}"
         if config.sim_host not in ("127.0.0.1", "localhost"):
             env["PX4_SIM_HOST_ADDR"] = config.sim_host
         for name, value in config.resolved_params().items():
@@ -266,6 +274,11 @@ class Px4Autopilot:
             with contextlib.suppress(FileNotFoundError):
                 (self.work_dir / stale).unlink()
         shutil.rmtree(self.work_dir / "eeprom", ignore_errors=True)
+        if RC_MAVLINK.is_file():
+            (self.work_dir / "rc").mkdir(exist_ok=True)
+            shutil.copyfile(RC_MAVLINK, self.work_dir / "rc" / RC_MAVLINK.name)
+        else:
+            log.warning("%s missing: PX4 starts its own MAVLink links (camera, gimbal too)", RC_MAVLINK)
         prune_logs(self.config.run_dir, self.config.log_cap_bytes)
 
     def start(self) -> None:
@@ -362,9 +375,9 @@ class Px4Autopilot:
             if self._console is not None:
                 self._console.join(1.0)
             tail = self.tail()
+            where = self.console_log if self.config.keep_logs else "console log not kept: pass --run-dir to keep it"
             raise Px4Died(
-                f"PX4 instance {self.instance} exited with code {code}; last output "
-                f"({self.console_log}):\n{tail}",
+                f"PX4 instance {self.instance} exited with code {code}; last output ({where}):\n{tail}",
                 instance=self.instance, returncode=code, tail=tail,
             )
 

@@ -119,7 +119,11 @@ class SessionBackend:
         return self.fleet
 
     def _start(self, seed: int) -> None:
-        session = SimSession(self.world, seed=seed, **self._session_options)
+        options = dict(self._session_options)
+        # Parallel envs of a kind with few instances (px4: 0..9) take free ones, not a busy one.
+        options["instance_base"] = env_kind(self.name).fleet_class().pick_instance_base(
+            self.num_drones, options["instance_base"])
+        session = SimSession(self.world, seed=seed, **options)
         try:
             session.start()
             self.session = session

@@ -1,0 +1,129 @@
+"""`sitl-bridge transfer RUN_DIR... --autopilots direct,stub,px4`: how a trained policy
+transfers between backends.
+
+Every run's policy is flown greedily in the run's own scenario on each backend, on the same
+evaluation seeds (`rl.rollout.eval_seeds`), one env per backend. Per backend: success and
+collision (crash) rate of the drone-episodes with Wilson 95 % confidence intervals, and the
+mean steps of the successful episodes (a slower velocity response shows there first).
+`--json FILE` also writes the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from sitl_bridge.autopilot import registry
+from sitl_bridge.errors import ConfigError
+
+Z95 = 1.959964
+"""Standard normal quantile of a two-sided 95 % interval."""
+
+
+def wilson_interval(successes: int, trials: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a proportion (sound at 0 and n, unlike the normal one)."""
+    if trials == 0:
+        return 0.0, 1.0
+    p = successes / trials
+    denominator = 1 + z * z / trials
+    centre = (p + z * z / (2 * trials)) / denominator
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denominator
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "transfer", help="evaluate trained policies greedily on several autopilot backends",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="training run directories")
+    parser.add_argument("--autopilots", default="direct,stub",
+                        help="comma-separated env backends (default direct,stub; e.g. direct,stub,px4)")
+    parser.add_argument("--episodes", type=int, default=20, help="episodes per backend (default 20)")
+    parser.add_argument("--seed", type=int, default=0, help="first evaluation seed (default 0)")
+    parser.add_argument("--speed-factor", type=float, default=0.0,
+                        help="speed factor of the session backends (default 0: as fast as lockstep allows)")
+    parser.add_argument("--instance-base", type=int, default=None,
+                        help="first vehicle instance of the session backends (default: px4 a free "
+                             "one in 0..9, others 0)")
+    parser.add_argument("--px4-bin", default=None, help="PX4 SITL binary (default: $PX4_BIN)")
+    parser.add_argument("--json", default=None, metavar="FILE", help="also write the table as JSON")
+    parser.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    autopilots = [a.strip() for a in args.autopilots.split(",") if a.strip()]
+    known = registry.names(env=True)
+    unknown = [a for a in autopilots if a not in known]
+    if unknown or not autopilots:
+        print(f"sitl-bridge transfer: --autopilots: expected names from {', '.join(known)}, "
+              f"got {args.autopilots!r}", file=sys.stderr)
+        return 2
+    if args.episodes < 1:
+        print("sitl-bridge transfer: --episodes must be at least 1", file=sys.stderr)
+        return 2
+    # torch and mavsdk are only imported for this command
+    from sitl_bridge.rl.drones_env import scenario_env_factory
+    from sitl_bridge.rl.evaluate import evaluate_policy
+    from sitl_bridge.rl.policy import policy_from_checkpoint
+    from sitl_bridge.rl.run_dir import run_dir_of, run_scenario
+
+    rows = []
+    try:
+        for run in args.runs:
+            if not run_dir_of(run):
+                raise ConfigError(f"{run}: not a training run directory (no run.json)")
+            world = str(run_scenario(run))
+            policy = policy_from_checkpoint(run)
+            for autopilot in autopilots:
+                extra = {"px4_bin": args.px4_bin} if args.px4_bin else {}
+                if autopilot != "direct":
+                    extra["instance_base"] = _instance_base(args.instance_base, autopilot, world)
+                factory = scenario_env_factory(world, autopilot, speed_factor=args.speed_factor, **extra)
+                result, traces = evaluate_policy(policy, factory, world=world, episodes=args.episodes,
+                                                 seed=args.seed)
+                n = len(traces)
+                goals = sum(t.outcome == "goal" for t in traces)
+                crashes = sum(t.outcome == "crash" for t in traces)
+                row = {"run": str(run), "world": Path(world).name, "autopilot": autopilot,
+                       "drone_episodes": n, "success": goals / n if n else 0.0,
+                       "success_ci95": wilson_interval(goals, n), "collision": crashes / n if n else 0.0,
+                       "collision_ci95": wilson_interval(crashes, n),
+                       "mean_steps_success": result.mean_steps_success}
+                rows.append(row)
+                print(_format(row), flush=True)
+    except KeyboardInterrupt:
+        print("\ninterrupted", file=sys.stderr)
+        return 130
+    except (ConfigError, ValueError, FileNotFoundError) as exc:
+        print(f"sitl-bridge transfer: {exc}", file=sys.stderr)
+        return 2
+    except RuntimeError as exc:  # a backend that could not start (no PX4 build, busy ports)
+        print(f"sitl-bridge transfer: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+def _instance_base(given: int | None, autopilot: str, world: str) -> int:
+    """`--instance-base`, else for px4 the first of enough free PX4 instances (lock files)."""
+    if given is not None:
+        return given
+    if autopilot != "px4":
+        return 0
+    from sitl_bridge.autopilot.px4.allocation import free_px4_instances
+    from sitl_bridge.world import load_world
+
+    return free_px4_instances(load_world(world).num_vehicles)[0]
+
+
+def _format(row: dict) -> str:
+    s_lo, s_hi = row["success_ci95"]
+    c_lo, c_hi = row["collision_ci95"]
+    steps = row["mean_steps_success"]
+    return (f"{row['run']} ({row['world']}) {row['autopilot']:>8}: success {row['success']:4.0%} "
+            f"[{s_lo:.0%}, {s_hi:.0%}], collision {row['collision']:4.0%} [{c_lo:.0%}, {c_hi:.0%}], "
+            f"steps to goal {'-' if steps is None else f'{steps:.1f}'} ({row['drone_episodes']} drone-episodes)")
