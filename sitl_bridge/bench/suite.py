@@ -1,0 +1,287 @@
+"""`sitl-bridge bench [--quick|--smoke] [--json FILE]`: every speed figure in one run.
+
+Each case is warmed up, then timed over `reps` repetitions; the median, min and max are
+reported. Every speed is a real-time factor (simulated s per wall s) and also a fraction of the
+bare pybullet loop measured in the same run (`fraction_of_bare`), so figures taken on different
+or differently loaded machines compare. Keys of the JSON file (`KEYS`):
+
+* `physics`: bare pybullet (ground plane + one body, 250 Hz, no Python work): the reference.
+* `direct`, `direct_ground_truth`: one `direct` env of the obstacle scenario (sensors + the
+  stub's estimator and cascade at 250 Hz; the ground-truth estimator), random actions.
+* `batched`: `make_vec_env(num_envs=N)` of the same scenario, aggregate over the N copies.
+* `stub`: one env on the full protocol path (HIL TCP + stub + MAVLink UDP + MAVSDK), speed 0.
+* `px4`: the same with real PX4 when `PX4_BIN` is set, else `{"skipped": reason}`.
+* `reset_s`: wall seconds per `reset()` for each backend measured (median, min, max).
+* `train_steps_per_s`: DQN training env steps per wall second, updates included (thesis O
+  settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
+* `parallel`: `direct` envs in 1 and 2 worker processes, aggregate real-time factor and the
+  speed-up from 1 to 2 workers (about 2 on two idle cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import platform
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sitl_bridge.bench.physics import bare_pybullet_rtf
+from sitl_bridge.data_paths import worlds_dir
+
+SCENARIO = "obstacle.yaml"
+KEYS = ("physics", "direct", "direct_ground_truth", "batched", "stub", "px4", "reset_s",
+        "train_steps_per_s", "parallel")
+
+
+@dataclass(frozen=True)
+class Size:
+    """How much each case runs: `sim_s` simulated seconds per repetition, `reps` repetitions."""
+
+    name: str
+    sim_s: float
+    reps: int
+    warmup_s: float
+    bare_s: float
+    num_envs: int
+    resets: int
+    train_episodes: int
+    parallel_sim_s: float
+
+
+SIZES = {
+    "full": Size("full", 100.0, 5, 10.0, 10.0, 16, 10, 40, 100.0),
+    "quick": Size("quick", 30.0, 3, 5.0, 4.0, 16, 5, 12, 30.0),
+    "smoke": Size("smoke", 1.0, 2, 1.0, 0.5, 2, 2, 2, 2.0),  # for the test: seconds, figures meaningless
+}
+
+
+def _spread(values: list[float]) -> dict[str, float]:
+    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+
+
+def _rtf_entry(rtfs: list[float], bare: float, **extra: Any) -> dict[str, Any]:
+    entry: dict[str, Any] = {"rtf": _spread(rtfs), "reps": len(rtfs)}
+    entry["fraction_of_bare"] = {k: v / bare for k, v in entry["rtf"].items()}
+    entry.update(extra)
+    return entry
+
+
+def _scenario() -> Path:
+    return worlds_dir() / SCENARIO
+
+
+def _fly(step: Callable[[], float], sim_s: float) -> float:
+    """Real-time factor of calling `step` (which returns the simulated seconds it flew) until
+    `sim_s` simulated seconds have passed."""
+    flown = 0.0
+    start = time.perf_counter()
+    while flown < sim_s:
+        flown += step()
+    return flown / (time.perf_counter() - start)
+
+
+def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
+              px4_bin: str | None = None) -> tuple[dict[str, Any], list[float]]:
+    """(figures, reset wall seconds) for one single env on `backend`."""
+    from sitl_bridge.bench.stub import free_instance_base
+    from sitl_bridge.envs import make_env
+
+    instance = free_instance_base(1) if backend != "direct" else 0
+    env = make_env(_scenario(), autopilot=backend, speed_factor=0.0, seed=0, instance_base=instance,
+                   estimator=estimator, px4_bin=px4_bin)
+    rng = np.random.default_rng(0)
+    step_s = env.scenario.task.action.step_s
+
+    def step() -> float:
+        _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
+        if terminated or truncated:
+            env.reset()  # counted: training pays for it too
+        return step_s
+
+    try:
+        env.reset(seed=0)
+        _fly(step, size.warmup_s)
+        rtfs = [_fly(step, size.sim_s) for _ in range(size.reps)]
+        resets = []
+        for _ in range(size.resets):
+            t0 = time.perf_counter()
+            env.reset()
+            resets.append(time.perf_counter() - t0)
+    finally:
+        env.close()
+    return _rtf_entry(rtfs, bare, backend=backend, estimator=estimator), resets
+
+
+def _batched_case(size: Size, bare: float) -> dict[str, Any]:
+    from sitl_bridge.envs.vector import make_vec_env
+
+    venv = make_vec_env(_scenario(), num_envs=size.num_envs, seed=0)
+    rng = np.random.default_rng(0)
+    step_s = venv.envs[0].unwrapped.scenario.task.action.step_s * size.num_envs
+
+    def step() -> float:
+        venv.step(rng.integers(8, size=size.num_envs))
+        return step_s
+
+    try:
+        venv.reset(seed=0)
+        _fly(step, size.warmup_s * size.num_envs)
+        rtfs = [_fly(step, size.sim_s * size.num_envs) for _ in range(size.reps)]
+    finally:
+        venv.close()
+    return _rtf_entry(rtfs, bare, num_envs=size.num_envs, design="SyncVectorEnv of SitlEnv (one client each)")
+
+
+def _train_case(size: Size, bare: float) -> dict[str, Any]:
+    """DQN env steps per wall second with O's `train:` settings (updates every step)."""
+    from sitl_bridge.envs import load_scenario
+    from sitl_bridge.rl.config import load_train_config
+    from sitl_bridge.rl.drones_env import scenario_env_factory
+    from sitl_bridge.rl.run_dir import RunSpec
+    from sitl_bridge.rl.trainer import Trainer
+
+    world = str(_scenario())
+    step_s = load_scenario(world).task.action.step_s
+    config = load_train_config(world, {"episodes": size.train_episodes, "eval_every": 0})
+    rates = []
+    with tempfile.TemporaryDirectory(prefix="sitl-bench-") as out, \
+            Trainer.start(out, RunSpec(world=world, autopilot="direct", seed=0), config,
+                          scenario_env_factory(world, "direct"), progress=False) as trainer:
+        trainer.run_episode()  # warm-up (network, replay, env start)
+        for _ in range(size.reps):
+            steps0, t0 = trainer.global_step, time.perf_counter()
+            for _ in range(max(1, size.train_episodes // size.reps)):
+                trainer.run_episode()
+            rates.append((trainer.global_step - steps0) / (time.perf_counter() - t0))
+        updates = trainer.updates
+    entry: dict[str, Any] = {"steps_per_s": _spread(rates), "reps": len(rates), "updates": updates}
+    entry["rtf"] = {k: v * step_s for k, v in entry["steps_per_s"].items()}
+    entry["fraction_of_bare"] = {k: v / bare for k, v in entry["rtf"].items()}
+    return entry
+
+
+def _parallel_worker(sim_s: float, warmup_s: float, barrier, results) -> None:
+    from sitl_bridge.envs import make_env
+
+    env = make_env(_scenario(), autopilot="direct", seed=os.getpid())
+    rng = np.random.default_rng(0)
+    step_s = env.scenario.task.action.step_s
+
+    def step() -> float:
+        _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
+        if terminated or truncated:
+            env.reset()
+        return step_s
+
+    env.reset()
+    _fly(step, warmup_s)
+    barrier.wait()
+    start = time.perf_counter()
+    _fly(step, sim_s)
+    results.put((sim_s, start, time.perf_counter()))
+    env.close()
+
+
+def _parallel_rtf(workers: int, size: Size) -> float:
+    """Aggregate real-time factor of `workers` processes each flying a `direct` env."""
+    ctx = mp.get_context("spawn")  # a fresh interpreter: no pybullet state copied by fork
+    barrier, results = ctx.Barrier(workers), ctx.Queue()
+    procs = [ctx.Process(target=_parallel_worker, args=(size.parallel_sim_s, size.warmup_s, barrier, results))
+             for _ in range(workers)]
+    for proc in procs:
+        proc.start()
+    runs = [results.get(timeout=600) for _ in procs]
+    for proc in procs:
+        proc.join()
+    total = sum(r[0] for r in runs)
+    return total / (max(r[2] for r in runs) - min(r[1] for r in runs))
+
+
+def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
+    reps = max(1, size.reps - 1)
+    one = [_parallel_rtf(1, size) for _ in range(reps)]
+    two = [_parallel_rtf(2, size) for _ in range(reps)]
+    return {"workers_1": _rtf_entry(one, bare), "workers_2": _rtf_entry(two, bare),
+            "speedup_2_over_1": statistics.median(two) / statistics.median(one),
+            "cpu_count": os.cpu_count()}
+
+
+def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Every figure of `KEYS` for `size`; a case that fails is reported under its key as
+    `{"failed": "..."}` instead of stopping the others."""
+    result: dict[str, Any] = {"size": size.name, "scenario": SCENARIO, "machine": platform.node(),
+                              "cpu_count": os.cpu_count(), "load_avg_1m": os.getloadavg()[0]}
+    bares = [bare_pybullet_rtf(size.bare_s)[0] for _ in range(size.reps)]
+    bare = statistics.median(bares)
+    result["physics"] = _rtf_entry(bares, bare)
+    log(f"  physics (bare pybullet): {bare:.0f}x real time")
+    resets: dict[str, Any] = {}
+    px4_bin = os.environ.get("PX4_BIN")
+    cases: list[tuple[str, Callable[[], Any]]] = [
+        ("direct", lambda: _env_case("direct", size, bare)),
+        ("direct_ground_truth", lambda: _env_case("direct", size, bare, estimator="ground_truth")),
+        ("batched", lambda: _batched_case(size, bare)),
+        ("stub", lambda: _env_case("stub", size, bare)),
+        ("px4", lambda: _env_case("px4", size, bare, px4_bin=px4_bin)),
+        ("train_steps_per_s", lambda: _train_case(size, bare)),
+        ("parallel", lambda: _parallel_case(size, bare)),
+    ]
+    for key, case in cases:
+        if key == "px4" and not px4_bin:
+            result[key] = {"skipped": "PX4_BIN not set"}
+            log(f"  {key}: skipped (PX4_BIN not set)")
+            continue
+        t0 = time.perf_counter()
+        try:
+            figures = case()
+        except Exception as exc:  # a failing case is a result to report, not a crash
+            result[key] = {"failed": f"{type(exc).__name__}: {exc}"}
+            log(f"  {key}: FAILED: {type(exc).__name__}: {exc}")
+            continue
+        if isinstance(figures, tuple):
+            figures, reset_s = figures
+            if key != "direct_ground_truth":
+                resets[key] = _spread(reset_s)
+        result[key] = figures
+        log(f"  {key}: {_summary(figures)}  ({time.perf_counter() - t0:.0f} s)")
+    result["reset_s"] = resets
+    log("  reset_s: " + ", ".join(f"{k} {v['median']:.3f} s" for k, v in resets.items()))
+    return result
+
+
+def _summary(figures: dict[str, Any]) -> str:
+    if "workers_2" in figures:
+        return (f"1 worker {figures['workers_1']['rtf']['median']:.0f}x, 2 workers "
+                f"{figures['workers_2']['rtf']['median']:.0f}x aggregate, "
+                f"speed-up {figures['speedup_2_over_1']:.2f}")
+    rtf, frac = figures["rtf"], figures["fraction_of_bare"]
+    text = (f"{rtf['median']:.1f}x real time (min {rtf['min']:.1f}, max {rtf['max']:.1f}); "
+            f"{frac['median']:.3f} of bare")
+    if "steps_per_s" in figures:
+        text = f"{figures['steps_per_s']['median']:.1f} steps/s, " + text
+    return text
+
+
+def run(args: argparse.Namespace) -> int:
+    """Measure at the chosen size, print a summary, write `--json` if given."""
+    size = SIZES["smoke" if getattr(args, "smoke", False) else "quick" if getattr(args, "quick", False) else "full"]
+    print(f"bench ({size.name}): {SCENARIO}, {size.reps} repetitions of {size.sim_s:g} simulated s "
+          f"per case after {size.warmup_s:g} s warm-up; real-time factor = simulated s / wall s", flush=True)
+    start = time.perf_counter()
+    result = measure(size, log=lambda line: print(line, flush=True))
+    result["wall_s"] = time.perf_counter() - start
+    if getattr(args, "json", None):
+        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+        print(f"written: {args.json}")
+    failed = [k for k in KEYS if isinstance(result.get(k), dict) and "failed" in result[k]]
+    return 1 if failed else 0
