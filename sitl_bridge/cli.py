@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "worlds",
     "bench",
     "train",
+    "sweep",
     "eval",
     "transfer",
     "lr_probe",

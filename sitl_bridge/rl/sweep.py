@@ -1,0 +1,289 @@
+"""Sweeps: independent DQN training runs (seeds x a hyperparameter grid), in parallel processes
+on this machine or as Ray tasks on a cluster, resumable.
+
+Layout under the sweep root (`--out`, default `runs/sweep__<world>`)::
+
+    <root>/<point>/seed<N>/<world>__<experiment>__<N>__<timestamp>/   one ordinary run directory
+    <root>/<point>/seed<N>/done.json                                  written when the run finished
+    <root>/summary.json                                               every run's result
+
+`<point>` names the grid point (`base` without a grid, else `lr=0.001,gamma=0.9`). Re-running the
+same sweep skips runs with `done.json`, resumes the others from their newest checkpoint
+(`Trainer.resume`) and starts those never started. A run that fails is reported with its error;
+the others go on.
+
+Vehicle instances (ports 4560+i, ...; only `stub`/`px4` open any): each local worker process
+owns one slot for its whole life and its runs use instances `instance_base + slot * vehicles
+...`, so concurrent runs of one sweep never share a port. Ray tasks get a slot per run instead
+(`instance_base + run_index * vehicles`). Keep real PX4 at instances 0-9 (see the README).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import multiprocessing as mp
+import re
+import time
+import traceback
+from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sitl_bridge.errors import ConfigError, load_yaml
+from sitl_bridge.rl.config import apply_overrides, load_train_config
+from sitl_bridge.rl.run_dir import RUN_FILE
+
+DONE_FILE = "done.json"
+SUMMARY_FILE = "summary.json"
+
+
+@dataclass(frozen=True)
+class SweepJob:
+    """One training run of a sweep."""
+
+    index: int
+    world: str
+    seed: int
+    point: str
+    overrides: dict[str, Any]
+    autopilot: str
+    job_dir: str
+    """`<root>/<point>/seed<N>`: holds the run directory and `done.json`."""
+    instance_base: int
+    vehicles: int
+    progress: bool = False
+
+
+@dataclass
+class SweepResult:
+    """What became of one run (a row of the summary)."""
+
+    point: str
+    seed: int
+    status: str
+    """`done` (trained this time), `skipped` (finished before), `failed`."""
+    run_dir: str = ""
+    episodes: int = 0
+    global_step: int = 0
+    success_rate: float = 0.0
+    greedy_success: float | None = None
+    wall_s: float = 0.0
+    error: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """`0-9`, `3`, `0,2,5-7` -> sorted unique seeds."""
+    seeds: set[int] = set()
+    for part in text.split(","):
+        match = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
+        if not match:
+            raise ConfigError(f"command line: --seeds: expected e.g. 0-9 or 0,3,5-7, got {text!r}")
+        low, high = int(match[1]), int(match[2] or match[1])
+        if high < low:
+            raise ConfigError(f"command line: --seeds: range {part.strip()!r} runs backwards")
+        seeds.update(range(low, high + 1))
+    return sorted(seeds)
+
+
+def load_grid(path: str | Path | None, world: str | Path) -> list[tuple[str, dict[str, Any]]]:
+    """Grid points `(name, overrides)`: the cartesian product of a YAML mapping
+    `{hyperparameter: [values]}` (each checked against the world's train config), or one
+    point `base` without a grid."""
+    if path is None:
+        return [("base", {})]
+    root = load_yaml(path)
+    if not isinstance(root.value, dict) or not root.value:
+        raise ConfigError(f"{path}: expected a mapping of hyperparameter: [values], got {root.value!r}")
+    names, values = [], []
+    for name, node_values in root.value.items():
+        options = node_values if isinstance(node_values, list) else [node_values]
+        if not options:
+            raise ConfigError(f"{path}: {name}: expected a non-empty list of values, got []")
+        names.append(str(name))
+        values.append(options)
+    base = load_train_config(world)
+    points = []
+    for combo in itertools.product(*values):
+        overrides = dict(zip(names, combo, strict=True))
+        try:
+            apply_overrides(base, overrides)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+        points.append((",".join(f"{k}={v}" for k, v in overrides.items()), overrides))
+    return points
+
+
+def plan(world: str | Path, seeds: Iterable[int], points: list[tuple[str, dict[str, Any]]], root: str | Path,
+         *, autopilot: str = "direct", instance_base: int = 0, common: dict[str, Any] | None = None) -> list[SweepJob]:
+    """Every (grid point, seed) run of the sweep, in a stable order."""
+    from sitl_bridge.world import load_world
+
+    vehicles = load_world(world).num_vehicles
+    jobs = []
+    for point, overrides in points:
+        for seed in seeds:
+            job_dir = Path(root) / _safe(point) / f"seed{seed}"
+            jobs.append(SweepJob(len(jobs), str(world), seed, point, {**(common or {}), **overrides}, autopilot,
+                                 str(job_dir), instance_base, vehicles))
+    return jobs
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.=,+-]", "_", name)
+
+
+def run_job(job: SweepJob, instance: int) -> SweepResult:
+    """Train one run to its end (or resume it); never raises: a failure is a result."""
+    job_dir = Path(job.job_dir)
+    done = job_dir / DONE_FILE
+    if done.exists():
+        result = SweepResult(**json.loads(done.read_text()))
+        result.status = "skipped"
+        return result
+    start = time.perf_counter()
+    result = SweepResult(job.point, job.seed, "failed")
+    try:
+        result = _train(job, instance)
+        result.wall_s = time.perf_counter() - start
+        tmp = done.with_suffix(".tmp")
+        tmp.write_text(json.dumps(asdict(result), indent=1) + "\n")
+        tmp.replace(done)  # atomic: a half-written done.json never marks a run finished
+    except BaseException as exc:  # a failed run is a result; KeyboardInterrupt included (the pool stops)
+        result.error = f"{type(exc).__name__}: {exc}"
+        result.extra["traceback"] = traceback.format_exc(limit=8)
+        result.wall_s = time.perf_counter() - start
+        if not isinstance(exc, Exception):
+            raise
+    return result
+
+
+def _train(job: SweepJob, instance: int) -> SweepResult:
+    from sitl_bridge.rl.drones_env import scenario_env_factory
+    from sitl_bridge.rl.run_dir import RunSpec
+    from sitl_bridge.rl.trainer import Trainer
+
+    job_dir = Path(job.job_dir)
+    job_dir.mkdir(parents=True, exist_ok=True)
+    factory = scenario_env_factory(job.world, job.autopilot, instance_base=instance)
+    started = [d for d in sorted(job_dir.iterdir()) if (d / RUN_FILE).exists()]
+    if started:  # an unfinished run of an earlier sweep: continue it
+        trainer = Trainer.resume(started[-1], factory, episodes=job.overrides.get("episodes"),
+                                 progress=job.progress)
+    else:
+        config = load_train_config(job.world, job.overrides)
+        spec = RunSpec(world=job.world, autopilot=job.autopilot, seed=job.seed)
+        trainer = Trainer.start(job_dir, spec, config, factory, progress=job.progress)
+    with trainer:
+        outcome = trainer.train()
+        greedy = trainer.last_eval.success_rate if trainer.last_eval is not None else None
+        if outcome.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0 and greedy is None:
+            greedy = trainer.evaluate().success_rate
+    return SweepResult(job.point, job.seed, "done", str(outcome.run_dir), outcome.episodes,
+                       outcome.global_step, outcome.success_rate, greedy)
+
+
+# -- local processes ------------------------------------------------------------------------
+_slot: int | None = None
+
+
+def _init_worker(counter) -> None:
+    """Give this worker process its own instance slot for its whole life."""
+    global _slot
+    with counter.get_lock():
+        _slot = counter.value
+        counter.value += 1
+
+
+def _run_in_worker(job: SweepJob) -> SweepResult:
+    assert _slot is not None
+    return run_job(job, job.instance_base + _slot * job.vehicles)
+
+
+def run_local(jobs: list[SweepJob], workers: int,
+              on_result: Callable[[SweepResult], None] | None = None) -> list[SweepResult]:
+    """Run `jobs` in `workers` fresh processes; results in job order."""
+    ctx = mp.get_context("spawn")  # fresh interpreters: no pybullet/torch state inherited
+    counter = ctx.Value("i", 0)
+    results: dict[int, SweepResult] = {}
+    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, initializer=_init_worker,
+                             initargs=(counter,)) as pool:
+        futures = {pool.submit(_run_in_worker, job): job for job in jobs}
+        for future in as_completed(futures):
+            job = futures[future]
+            try:
+                result = future.result()
+            except Exception as exc:  # the worker process itself died
+                result = SweepResult(job.point, job.seed, "failed", error=f"worker died: {type(exc).__name__}: {exc}")
+            results[job.index] = result
+            if on_result is not None:
+                on_result(result)
+    return [results[job.index] for job in jobs]
+
+
+# -- Ray ------------------------------------------------------------------------------------
+def run_ray(jobs: list[SweepJob], address: str | None = None, num_cpus_per_run: float = 1.0,
+            on_result: Callable[[SweepResult], None] | None = None) -> list[SweepResult]:
+    """Run `jobs` as Ray tasks: Ray's local cluster by default, `address` for an existing one
+    (`ray start --head` on one machine, `ray start --address HEAD:6379` on the others; the
+    sweep root must be a path every node shares). Ray schedules; nothing here does."""
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("command line: --backend ray: Ray is not installed (pip install 'sitl-bridge[ray]')") from None
+    started_here = not ray.is_initialized()
+    if started_here:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    try:
+        task = ray.remote(num_cpus=num_cpus_per_run)(run_job)
+        refs = {task.remote(job, job.instance_base + job.index * job.vehicles): job for job in jobs}
+        results: dict[int, SweepResult] = {}
+        pending = list(refs)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            job = refs[ready[0]]
+            try:
+                result = ray.get(ready[0])
+            except Exception as exc:  # the task's process died (a run's own errors come back as results)
+                result = SweepResult(job.point, job.seed, "failed", error=f"ray task died: {type(exc).__name__}: {exc}")
+            results[job.index] = result
+            if on_result is not None:
+                on_result(result)
+        return [results[job.index] for job in jobs]
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+# -- summary --------------------------------------------------------------------------------
+def summary_table(results: list[SweepResult]) -> str:
+    """One line per run, then per grid point the median success over its seeds."""
+    lines = [f"{'point':<28} {'seed':>4} {'status':<8} {'episodes':>8} {'steps':>8} {'rolling':>7} "
+             f"{'greedy':>6} {'wall s':>7}  run dir / error"]
+    for r in results:
+        greedy = "-" if r.greedy_success is None else f"{r.greedy_success:.0%}"
+        where = r.error if r.status == "failed" else r.run_dir
+        lines.append(f"{r.point[:28]:<28} {r.seed:>4} {r.status:<8} {r.episodes:>8} {r.global_step:>8} "
+                     f"{r.success_rate:>7.0%} {greedy:>6} {r.wall_s:>7.1f}  {where}")
+    by_point: dict[str, list[SweepResult]] = {}
+    for r in results:
+        by_point.setdefault(r.point, []).append(r)
+    for point, rows in by_point.items():
+        ok = [r for r in rows if r.status != "failed"]
+        greedy = sorted(r.greedy_success for r in ok if r.greedy_success is not None)
+        median = f"{greedy[len(greedy) // 2]:.0%}" if greedy else "-"
+        lines.append(f"{point}: {len(ok)}/{len(rows)} runs finished, median greedy success {median}")
+    return "\n".join(lines)
+
+
+def write_summary(root: str | Path, results: list[SweepResult]) -> Path:
+    path = Path(root) / SUMMARY_FILE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows = [{k: v for k, v in asdict(r).items() if k != "extra"} for r in results]
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(rows, indent=1) + "\n")
+    tmp.replace(path)
+    return path
