@@ -7,12 +7,12 @@ MAVSDK client -> env -> agent/trainer -> logs -> plots/rules.
 
 __version__ = "0.1.0"
 
-__all__ = ["make_env", "make_parallel_env", "__version__"]
+__all__ = ["make_env", "make_parallel_env", "make_vec_env", "__version__"]
 
 
 def __getattr__(name: str):
     # Lazy, so `import sitl_bridge` stays light (no pybullet/mavsdk) until an env is wanted.
-    if name in ("make_env", "make_parallel_env"):
+    if name in ("make_env", "make_parallel_env", "make_vec_env"):
         from sitl_bridge import envs
 
         return getattr(envs, name)

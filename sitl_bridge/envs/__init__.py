@@ -28,6 +28,7 @@ from sitl_bridge.envs.parallel import SitlParallelEnv
 from sitl_bridge.envs.runner import OUTCOMES
 from sitl_bridge.envs.scenario import Scenario, load_scenario
 from sitl_bridge.envs.single import SitlEnv
+from sitl_bridge.envs.vector import make_vec_env
 
 SINGLE_ENVS: dict[str, str] = {
     "sitl_bridge/Empty-v0": "empty.yaml",
@@ -89,5 +90,5 @@ _register()
 __all__ = [
     "AUTOPILOTS", "ESTIMATORS", "OUTCOMES", "PARALLEL_ENVS", "SINGLE_ENVS", "Backend", "BackendError",
     "EnvOptions", "Scenario", "SitlEnv", "SitlParallelEnv", "Snapshot", "load_scenario", "make_backend",
-    "make_env", "make_parallel_env", "scenario_path", "worlds_dir",
+    "make_env", "make_parallel_env", "make_vec_env", "scenario_path", "worlds_dir",
 ]
