@@ -15,19 +15,22 @@ way DQN collectors expect (no dummy transition between episodes).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
+from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.envs.single import SitlEnv
 
 
-def make_vec_env(scenario: str | Path, *, num_envs: int, autopilot: str = "direct",
-                 speed_factor: float = 0.0, seed: int | None = None, instance_base: int = 0,
-                 px4_bin: str | None = None, estimator: str = "sensors") -> gym.vector.VectorEnv:
-    """A `SyncVectorEnv` of `num_envs` copies of `scenario` (file or registered id).
+def make_vec_env(scenario: str | Path, *, num_envs: int, options: EnvOptions | None = None,
+                 **option_values: Any) -> gym.vector.VectorEnv:
+    """A `SyncVectorEnv` of `num_envs` copies of `scenario` (file or registered id); options as
+    for `make_env` (`autopilot=`, `seed=`, `instance_base=`, ... or `options=` whole).
 
     Copy k is `make_env(scenario, seed=seed + k, instance_base=instance_base + k, ...)`, so for
     `stub`/`px4` each copy has its own vehicle instance (ports 4560+i, ...). `reset(seed=s)`
@@ -37,11 +40,12 @@ def make_vec_env(scenario: str | Path, *, num_envs: int, autopilot: str = "direc
     if not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"make_vec_env: num_envs: expected an integer >= 1, got {num_envs!r}")
     path = scenario_path(scenario)
+    base = EnvOptions.of(options, **option_values)
 
     def factory(k: int):
-        return lambda: SitlEnv(path, autopilot=autopilot, speed_factor=speed_factor,
-                               seed=None if seed is None else seed + k, instance_base=instance_base + k,
-                               px4_bin=px4_bin, estimator=estimator)
+        copy = replace(base, seed=None if base.seed is None else base.seed + k,
+                       instance_base=base.instance_base + k)
+        return lambda: SitlEnv(path, options=copy)
 
     return _SyncVectorEnv([factory(k) for k in range(num_envs)], autoreset_mode=AutoresetMode.SAME_STEP)
 
