@@ -152,12 +152,16 @@ def _train_case(size: Size, bare: float) -> dict[str, Any]:
 
     world = str(_scenario())
     step_s = load_scenario(world).task.action.step_s
-    config = load_train_config(world, {"episodes": size.train_episodes, "eval_every": 0})
+    config = load_train_config(world, {"eval_every": 0})  # O as shipped, no evaluation pauses
     rates = []
     with tempfile.TemporaryDirectory(prefix="sitl-bench-") as out, \
             Trainer.start(out, RunSpec(world=world, autopilot="direct", seed=0), config,
                           scenario_env_factory(world, "direct"), progress=False) as trainer:
-        trainer.run_episode()  # warm-up (network, replay, env start)
+        trainer.run_episode()  # warm-up (network, replay, env start) ...
+        for _ in range(500):  # ... until updates run: the timed episodes include them
+            if trainer.updates:
+                break
+            trainer.run_episode()
         for _ in range(size.reps):
             steps0, t0 = trainer.global_step, time.perf_counter()
             for _ in range(max(1, size.train_episodes // size.reps)):
