@@ -26,7 +26,7 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
         entry = result[key]
         assert set(entry["rtf"]) == {"median", "min", "max"}, key
         assert entry["rtf"]["min"] <= entry["rtf"]["median"] <= entry["rtf"]["max"], key
-        assert entry["fraction_of_bare"]["median"] == entry["rtf"]["median"] / bare, key
+        assert entry["fraction_of_bare"]["median"] == entry["rtf"]["median"] / entry["bare_rtf_adjacent"], key
     assert result["train_steps_per_s"]["updates"] > 0  # DQN updates were part of the timing
     assert set(result["reset_s"]) == {"direct", "stub"}
     assert result["parallel"]["speedup_2_over_1"] > 0
