@@ -25,7 +25,9 @@ def test_mavproxy_sees_one_vehicle_without_fence_breach_and_fetches_parameters(f
     try:
         result = subprocess.run(
             [MAVPROXY, "--master=udpin:127.0.0.1:14550", "--daemon", "--non-interactive",
-             "--cmd=param fetch"], cwd=tmp_path, capture_output=True, text=True, timeout=25)
+             # our vehicle, not another simulator's on this machine (all GCS links send to 14550)
+             f"--target-system={system_id_for(free_instance)}", "--cmd=param fetch"],
+            cwd=tmp_path, capture_output=True, text=True, timeout=25)
         output = result.stdout + result.stderr
     except subprocess.TimeoutExpired as exc:  # MAVProxy runs until stopped: read what it said
         output = (exc.stdout or b"").decode() + (exc.stderr or b"").decode()
