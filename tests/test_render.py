@@ -179,3 +179,15 @@ def test_run_policy_records_a_video_through_the_stub(tmp_path: Path, free_instan
     assert f"video: {video}" in result.stdout
     frames = iio.imread(video, plugin="FFMPEG")
     assert frames.shape[0] >= 2 and frames.shape[-1] == 3
+
+
+def test_vector_env_renders_each_copy() -> None:
+    from sitl_bridge import make_vec_env
+
+    envs = make_vec_env(WORLDS / "empty.yaml", num_envs=2, render_mode="rgb_array", estimator="ground_truth")
+    try:
+        envs.reset(seed=0)
+        frames = envs.render()
+        assert len(frames) == 2 and all(f.shape == (384, 512, 3) for f in frames)
+    finally:
+        envs.close()

@@ -85,11 +85,7 @@ class InProcessStubFleet(AutopilotFleet):
 
     def restart(self, lockstep: Lockstep, reset_simulation: Callable[[], None] | None = None) -> None:
         # A cold boot: new stubs on the same ports (the old sockets are closed first).
-        self.close()
-        for link in lockstep.links:
-            link.disconnect()
-        if reset_simulation is not None:
-            reset_simulation()
+        _shut_down_for_restart(self, lockstep, reset_simulation)
         pumps = self.start(lockstep.links)
         lockstep.pumps[:] = pumps
         self.connect(lockstep.links, pumps)
@@ -161,11 +157,7 @@ class StubProcessFleet(AutopilotFleet):
         self.processes = []
 
     def restart(self, lockstep: Lockstep, reset_simulation: Callable[[], None] | None = None) -> None:
-        self.close()
-        for link in lockstep.links:
-            link.disconnect()
-        if reset_simulation is not None:
-            reset_simulation()
+        _shut_down_for_restart(self, lockstep, reset_simulation)
         self.start(lockstep.links)
         self.connect(lockstep.links)
 
@@ -174,3 +166,13 @@ class StubProcessFleet(AutopilotFleet):
 
 
 __all__ = ["InProcessStubFleet", "StubProcessFleet", "stub_params"]
+
+
+def _shut_down_for_restart(fleet: AutopilotFleet, lockstep: Lockstep,
+                           reset_simulation: Callable[[], None] | None) -> None:
+    """First half of a restart: stop the autopilots, drop their links, reset the simulation."""
+    fleet.close()
+    for link in lockstep.links:
+        link.disconnect()
+    if reset_simulation is not None:
+        reset_simulation()
