@@ -107,3 +107,55 @@ def test_two_seed_sweep_on_rays_local_cluster(tmp_path) -> None:
         assert rows[seed]["status"] == "done"
         assert Path(rows[seed]["run_dir"]).parent == root / "base" / f"seed{seed}"
         assert _episodes(rows[seed]["run_dir"]) == 2
+
+
+def _training_children(root: Path) -> list[int]:
+    """Pids of `sitl-bridge train` processes writing under `root`."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                cmdline = (entry / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"train" in cmdline and any(str(root).encode() in part for part in cmdline):
+                pids.append(int(entry.name))
+    return pids
+
+
+def test_supervised_sweep_restarts_a_killed_run_from_its_checkpoint(tmp_path) -> None:
+    import os
+    import signal
+    import time
+
+    root = tmp_path / "sweep"
+    command = [sys.executable, "-m", "sitl_bridge", "sweep", WORLD, "--out", str(root), "--episodes", "6",
+               "--eval-every", "0", "--eval-episodes", "0", "--seeds", "0", "--workers", "1", "--watchdog"]
+    sweep = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        killed = False
+        while not killed and time.monotonic() < deadline and sweep.poll() is None:
+            logs = list(root.glob("*/seed0/*/episodes.jsonl"))
+            if logs and len(logs[0].read_text().splitlines()) >= 2:
+                for pid in _training_children(root):
+                    os.kill(pid, signal.SIGKILL)
+                    killed = True
+            time.sleep(0.2)
+        assert killed, "the training child was never seen"
+        out, err = sweep.communicate(timeout=300)
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+    assert sweep.returncode == 0, err
+    (row,) = json.loads((root / "summary.json").read_text())
+    assert row["status"] == "done" and row["episodes"] == 6
+    assert row["restarts"] >= 1
+    episodes = [json.loads(line)["episode"] for line in (Path(row["run_dir"]) / "episodes.jsonl").read_text().splitlines()]
+    assert episodes == list(range(6))  # restarted from its checkpoint: no gap, no duplicate
+    assert (Path(row["run_dir"]) / "watchdog.jsonl").read_text().count("killed by signal 9") >= 1
+
+
+def test_supervised_sweep_needs_the_direct_backend(tmp_path) -> None:
+    proc = _sweep(tmp_path / "s", "--seeds", "0", "--watchdog", "--autopilot", "stub")
+    assert proc.returncode == 2 and "supervised sweeps run the direct backend only" in proc.stderr

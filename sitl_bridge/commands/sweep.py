@@ -32,6 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--instance-base", type=int, default=0,
                         help="first vehicle instance of the sweep (stub/px4 ports 4560+i, ...)")
     parser.add_argument("--out", help="sweep root (default runs/sweep__<world>)")
+    parser.add_argument("--watchdog", action="store_true",
+                        help="supervise every run like `train --watchdog` (direct backend): a run that dies "
+                             "or freezes restarts from its last checkpoint")
     add_config_arguments(parser)
     parser.set_defaults(func=main)
 
@@ -44,13 +47,16 @@ def main(args: argparse.Namespace) -> int:
             raise ConfigError(f"command line: --workers: expected an integer >= 1, got {args.workers}")
         if not Path(args.world).is_file():
             raise ConfigError(f"command line: WORLD: expected a scenario file, got {args.world!r}")
+        if args.watchdog and args.autopilot != "direct":
+            raise ConfigError("command line: --watchdog: supervised sweeps run the direct backend only, "
+                              f"got --autopilot {args.autopilot}")
         seeds = sweep.parse_seeds(args.seeds)
         points = sweep.load_grid(args.grid, args.world)
         common = {k: v for k, v in overrides_from_args(args).items() if v is not None}
         # absolute paths: Ray runs tasks in other working directories (and on other nodes)
         root = str(Path(args.out or Path("runs") / f"sweep__{Path(args.world).stem}").resolve())
         jobs = sweep.plan(str(Path(args.world).resolve()), seeds, points, root, autopilot=args.autopilot,
-                          instance_base=args.instance_base, common=common)
+                          instance_base=args.instance_base, common=common, watchdog=args.watchdog)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

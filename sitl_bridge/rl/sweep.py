@@ -55,6 +55,9 @@ class SweepJob:
     instance_base: int
     vehicles: int
     progress: bool = False
+    watchdog: bool = False
+    """Train in a `sitl-bridge train` child supervised by `rl.watchdog` (restarted from its last
+    checkpoint when it dies or freezes); `direct` only, where no ports are involved."""
 
 
 @dataclass
@@ -72,6 +75,8 @@ class SweepResult:
     greedy_success: float | None = None
     wall_s: float = 0.0
     error: str = ""
+    restarts: int = 0
+    """Times the watchdog restarted the run (`--watchdog`)."""
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -118,7 +123,8 @@ def load_grid(path: str | Path | None, world: str | Path) -> list[tuple[str, dic
 
 
 def plan(world: str | Path, seeds: Iterable[int], points: list[tuple[str, dict[str, Any]]], root: str | Path,
-         *, autopilot: str = "direct", instance_base: int = 0, common: dict[str, Any] | None = None) -> list[SweepJob]:
+         *, autopilot: str = "direct", instance_base: int = 0, common: dict[str, Any] | None = None,
+         watchdog: bool = False) -> list[SweepJob]:
     """Every (grid point, seed) run of the sweep, in a stable order."""
     from sitl_bridge.world import load_world
 
@@ -128,7 +134,7 @@ def plan(world: str | Path, seeds: Iterable[int], points: list[tuple[str, dict[s
         for seed in seeds:
             job_dir = Path(root) / _safe(point) / f"seed{seed}"
             jobs.append(SweepJob(len(jobs), str(world), seed, point, {**(common or {}), **overrides}, autopilot,
-                                 str(job_dir), instance_base, vehicles))
+                                 str(job_dir), instance_base, vehicles, watchdog=watchdog))
     return jobs
 
 
@@ -162,6 +168,8 @@ def run_job(job: SweepJob, instance: int) -> SweepResult:
 
 
 def _train(job: SweepJob, instance: int) -> SweepResult:
+    if job.watchdog:
+        return _train_supervised(job)
     from sitl_bridge.rl.drones_env import scenario_env_factory
     from sitl_bridge.rl.run_dir import RunSpec
     from sitl_bridge.rl.trainer import Trainer
@@ -184,6 +192,38 @@ def _train(job: SweepJob, instance: int) -> SweepResult:
             greedy = trainer.evaluate().success_rate
     return SweepResult(job.point, job.seed, "done", str(outcome.run_dir), outcome.episodes,
                        outcome.global_step, outcome.success_rate, greedy)
+
+
+def _train_supervised(job: SweepJob) -> SweepResult:
+    """The run as `sitl-bridge train` under the watchdog; its result read back from the run dir."""
+    from sitl_bridge.rl.episode_log import read_records
+    from sitl_bridge.rl.run_dir import EPISODES_FILE, EVAL_FILE
+    from sitl_bridge.rl.watchdog import Watchdog
+
+    job_dir = Path(job.job_dir)
+    job_dir.mkdir(parents=True, exist_ok=True)
+    started = [d for d in sorted(job_dir.iterdir()) if (d / RUN_FILE).exists()]
+    episodes = job.overrides.get("episodes")
+    if started:
+        argv = ["--resume", str(started[-1]), *([] if episodes is None else ["--episodes", str(episodes)])]
+    else:
+        argv = [job.world, "--seed", str(job.seed), "--out", str(job_dir), "--autopilot", job.autopilot]
+        for name, value in job.overrides.items():
+            flag = "--" + name.replace("_", "-")
+            argv += [flag if value else "--no-" + flag[2:]] if isinstance(value, bool) else [flag, str(value)]
+    argv.append("--no-progress")
+    report = Watchdog(argv).run()
+    if report.exit_code != 0 or report.run_dir is None:
+        raise RuntimeError(report.gave_up or f"training exited with code {report.exit_code}")
+    records = read_records(report.run_dir / EPISODES_FILE)
+    eval_path = report.run_dir / EVAL_FILE
+    greedy = json.loads(eval_path.read_text())["success_rate"] if eval_path.exists() else None
+    recent = records[-100:]
+    return SweepResult(job.point, job.seed, "done", str(report.run_dir),
+                       1 + max((r["episode"] for r in records), default=-1),
+                       max((r.get("global_step", 0) for r in records), default=0),
+                       sum(r["outcome"] == "goal" for r in recent) / max(len(recent), 1), greedy,
+                       restarts=len(report.restarts))
 
 
 # -- local processes ------------------------------------------------------------------------
