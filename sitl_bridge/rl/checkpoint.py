@@ -24,6 +24,9 @@ from sitl_bridge.rl.atomic import atomic_write_bytes, fsync_dir
 
 FORMAT = "sitl_bridge.checkpoint/1"
 CHECKPOINT_DIR = "checkpoints"
+BEST_CHECKPOINT = "best.safetensors"
+"""In a run directory: a copy of the checkpoint whose greedy evaluation scored best (the run's
+result; `best.json` beside it says when and how well)."""
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
@@ -160,12 +163,20 @@ def restore_newest(directory: str | Path,
     raise CheckpointError(f"{directory}: no usable checkpoint ({'; '.join(problems)})")
 
 
-def resolve_checkpoint(path: str | Path) -> tuple[Path, dict[str, torch.Tensor], dict[str, Any]]:
-    """A checkpoint file, or the newest valid checkpoint of a run directory (or its
-    `checkpoints/` folder), loaded and verified. Read-only: nothing is quarantined."""
+def resolve_checkpoint(path: str | Path, *, latest: bool = False) -> tuple[Path, dict[str, torch.Tensor], dict[str, Any]]:
+    """A checkpoint file, or a run directory's result: its best greedy checkpoint
+    (`best.safetensors`) when it has a sound one and `latest` is False, else the newest valid
+    checkpoint of the run (or of a `checkpoints/` folder), loaded and verified. Read-only:
+    nothing is quarantined."""
     path = Path(path)
     if path.is_file():
         return (path, *load_checkpoint(path))
+    best = path / BEST_CHECKPOINT
+    if not latest and best.is_file():
+        try:
+            return (best, *load_checkpoint(best))
+        except CheckpointCorrupt as exc:
+            log.warning("ignoring the run's unusable best checkpoint, using the newest: %s", exc)
     folder = path / CHECKPOINT_DIR if (path / CHECKPOINT_DIR).is_dir() else path
     if not folder.is_dir():
         raise CheckpointError(f"{path}: neither a checkpoint file nor a run directory")

@@ -44,16 +44,18 @@ class GreedyPolicy:
         return int(np.argmax(self.q_values(obs)))
 
 
-def load_network(path: str | Path) -> tuple[QNetwork, Path, dict]:
-    """The online Q network of a checkpoint file or run directory (newest valid checkpoint)."""
-    file, tensors, state = resolve_checkpoint(path)
+def load_network(path: str | Path, *, latest: bool = False) -> tuple[QNetwork, Path, dict]:
+    """The online Q network of a checkpoint file or run directory (its best greedy checkpoint,
+    or with `latest` its newest valid one; see `resolve_checkpoint`)."""
+    file, tensors, state = resolve_checkpoint(path, latest=latest)
     network = QNetwork(NetworkShape(**state["network"]))
     network.load_state_dict({k[len("online."):]: v for k, v in tensors.items() if k.startswith("online.")})
     network.eval()
     return network, file, state
 
 
-def policy_from_checkpoint(path: str | Path) -> GreedyPolicy:
-    """Greedy policy of a run directory or checkpoint file: `policy(obs) -> int action`."""
-    network, file, state = load_network(path)
+def policy_from_checkpoint(path: str | Path, *, latest: bool = False) -> GreedyPolicy:
+    """Greedy policy of a run directory (its best greedy checkpoint unless `latest`) or
+    checkpoint file: `policy(obs) -> int action`."""
+    network, file, state = load_network(path, latest=latest)
     return GreedyPolicy(network, file, int(state.get("episode", 0)))

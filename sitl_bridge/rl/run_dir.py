@@ -41,6 +41,8 @@ TENSORBOARD = "tb"
 EVAL_FILE = "eval.json"
 EVALS_FILE = "evals.jsonl"
 BASELINE_FILE = "baseline.json"
+BEST_FILE = "best.json"
+"""The best greedy evaluation so far and the checkpoint it scored (`checkpoint.BEST_CHECKPOINT`)."""
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ import torch
 
 from sitl_bridge.rl import checkpoint as ckpt
 from sitl_bridge.rl import run_dir as rd
-from sitl_bridge.rl.atomic import append_durably, atomic_write_json
+from sitl_bridge.rl.atomic import append_durably, atomic_write_bytes, atomic_write_json
 from sitl_bridge.rl.config import TrainConfig
 from sitl_bridge.rl.dqn import DQNAgent, NetworkShape, epsilon_at, learning_rate_at
 from sitl_bridge.rl.drones_env import (
@@ -317,6 +317,7 @@ class Trainer:
                 if (self.config.eval_every and self.config.eval_episodes
                         and self.episode % self.config.eval_every == 0 and self.episode < self.config.episodes):
                     result = self.evaluate()
+                    self._keep_if_best(result)
                     baseline = self.constant_baseline()  # measured once per run, then read back
                     bar.update(0, greedy=f"{result.success_rate:.0%}", constant_best=f"{baseline.success_rate:.0%}")
                     if self.solved(result):
@@ -370,6 +371,22 @@ class Trainer:
             self._writer.evaluation(self.episode - 1, result)
         self.last_eval = result
         return result
+
+    def _keep_if_best(self, result: EvalResult) -> None:
+        """Copy the checkpoint just evaluated to `best.safetensors` when its greedy success beats
+        every earlier evaluation's (ties: the higher mean reward). Later training may forget
+        what was learned (the thesis's OR collapsed after solving it); the best stays the
+        run's result. Resumes compare against `best.json`."""
+        best_file = self.run_dir / rd.BEST_FILE
+        score = (result.success_rate, result.mean_reward)
+        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+            best = json.loads(best_file.read_text())
+            if score <= (best["success_rate"], best["mean_reward"]):
+                return
+        source = ckpt.checkpoint_path(self.checkpoint_dir, self.episode)
+        atomic_write_bytes(self.run_dir / ckpt.BEST_CHECKPOINT, source.read_bytes())
+        atomic_write_json(best_file, {**result.to_dict(), "after_episodes": self.episode,
+                                      "global_step": self.global_step, "checkpoint": source.name})
 
     def success_rate(self) -> float:
         return float(np.mean(self.recent_success)) if self.recent_success else 0.0

@@ -1,0 +1,47 @@
+"""A run keeps its best greedy checkpoint as its result (issue 12: OR must not lose what it
+learned when later training collapses): `best.safetensors` + `best.json`, and run directories
+resolve to it unless the newest is asked for."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from test_rl_helpers import corridor_factory, tiny_config
+
+from sitl_bridge.rl.checkpoint import BEST_CHECKPOINT, load_checkpoint, resolve_checkpoint
+from sitl_bridge.rl.run_dir import BEST_FILE, EVALS_FILE, RunSpec
+from sitl_bridge.rl.trainer import Trainer
+
+
+def test_best_checkpoint_is_the_best_evaluation_and_the_runs_result(tmp_path: Path) -> None:
+    config = tiny_config(episodes=13, eval_every=2, eval_episodes=3, stop_on_success=0.0)
+    with Trainer.start(tmp_path, RunSpec(world="corridor.yaml"), config, corridor_factory(),
+                       progress=False) as trainer:
+        trainer.train()
+        run_dir = trainer.run_dir
+    evals = [json.loads(line) for line in (run_dir / EVALS_FILE).read_text().splitlines()]
+    assert len(evals) == 6
+    best = json.loads((run_dir / BEST_FILE).read_text())
+    top = max(evals, key=lambda e: (e["success_rate"], e["mean_reward"]))
+    # the first evaluation with the top score (a tie does not replace the earlier one)
+    assert best["after_episodes"] == top["after_episodes"]
+    assert best["success_rate"] == top["success_rate"]
+    _, state = load_checkpoint(run_dir / BEST_CHECKPOINT)
+    assert state["episode"] == best["after_episodes"]
+
+    assert resolve_checkpoint(run_dir)[0] == run_dir / BEST_CHECKPOINT
+    newest, _, newest_state = resolve_checkpoint(run_dir, latest=True)
+    assert newest.parent.name == "checkpoints" and newest_state["episode"] == 13
+
+
+def test_a_damaged_best_checkpoint_falls_back_to_the_newest(tmp_path: Path) -> None:
+    config = tiny_config(episodes=4, eval_every=2, eval_episodes=2, stop_on_success=0.0)
+    with Trainer.start(tmp_path, RunSpec(world="corridor.yaml"), config, corridor_factory(),
+                       progress=False) as trainer:
+        trainer.train()
+        run_dir = trainer.run_dir
+    best = run_dir / BEST_CHECKPOINT
+    best.write_bytes(best.read_bytes()[:-10])
+    path, _, state = resolve_checkpoint(run_dir)
+    assert path.parent.name == "checkpoints" and state["episode"] == 4
