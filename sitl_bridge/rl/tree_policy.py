@@ -151,6 +151,11 @@ def _number(value: float) -> str:
     return f"{value:g}"
 
 
+def _share(samples: int, total: int) -> str:
+    share = samples / total
+    return "<1%" if 0 < share < 0.005 else f"{share:.0%}"
+
+
 def condition_text(condition: Condition, labels: list[str]) -> str:
     return f"{labels[condition.feature]} {condition.op} {_number(condition.value)}"
 
@@ -163,7 +168,7 @@ def tree_text(tree: TreePolicy, labels: list[str], frame: str = "world") -> str:
 
     def leaf_line(leaf: Leaf, indent: str, prefix: str) -> None:
         lines.append(f"{indent}{prefix}{action_name(leaf.action, frame)}   "
-                     f"({leaf.samples / total:.0%} of states)")
+                     f"({_share(leaf.samples, total)} of states)")
 
     def walk(node: TreeNode, indent: str) -> None:
         if isinstance(node, Leaf):
@@ -197,7 +202,7 @@ def tree_rules(tree: TreePolicy, labels: list[str], *, frame: str, name: str, co
     for conditions, leaf in tree.paths():
         action = action_name(leaf.action, frame)
         words = " and ".join(condition_text(c, labels) for c in conditions) or "always"
-        rule: dict[str, Any] = {"text": f"{words}: {action} ({leaf.samples / total:.0%} of states)"}
+        rule: dict[str, Any] = {"text": f"{words}: {action} ({_share(leaf.samples, total)} of states)"}
         if conditions:
             rule["when"] = [{"feature": labels[c.feature], "op": c.op, "value": c.value} for c in conditions]
         rule["action"] = action
