@@ -39,11 +39,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sitl_bridge.envs.view import DroneView, ScenarioLimits
 from sitl_bridge.errors import ConfigError, Node
+
+if TYPE_CHECKING:  # scenario.py imports this module (through task.py)
+    from sitl_bridge.envs.scenario import Scenario
 
 LIDAR_GROUPS = ("horizontal", "up", "down")
 
@@ -300,3 +304,18 @@ def parse_observation(node: Node, limits: ScenarioLimits) -> list[Feature]:
                               f"{name!r} (expected one of {', '.join(FEATURES)})")
         features.append(FEATURES[name](options, limits))
     return features
+
+
+def observation_layout(scenario: Scenario) -> dict[str, slice]:
+    """Feature name -> its slice of one drone's observation vector, in observation order.
+    A name listed twice keeps its first block under `name` and the later ones as `name@2`, ..."""
+    layout: dict[str, slice] = {}
+    start = 0
+    for feature in scenario.task.observation:
+        key, n = feature.name, 1
+        while key in layout:
+            n += 1
+            key = f"{feature.name}@{n}"
+        layout[key] = slice(start, start + feature.size)
+        start += feature.size
+    return layout
