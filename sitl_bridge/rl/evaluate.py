@@ -111,7 +111,15 @@ def evaluate_checkpoint(checkpoint: str | Path, world: str | Path, *, episodes: 
                         video_dir: str | Path | None = None) -> tuple[EvalResult, list[Trace]]:
     """Greedy evaluation of a checkpoint (file or run directory) in the scenario `world`
     (with `video_dir`: one MP4 per episode there)."""
-    policy = policy_from_checkpoint(checkpoint)
+    return evaluate_in_world(policy_from_checkpoint(checkpoint), world, episodes=episodes, autopilot=autopilot,
+                             seed=seed, progress=progress, video_dir=video_dir)
+
+
+def evaluate_in_world(policy: Callable[[np.ndarray], int], world: str | Path, *, episodes: int,
+                      autopilot: str = "direct", seed: int = 0, progress: bool = False,
+                      video_dir: str | Path | None = None) -> tuple[EvalResult, list[Trace]]:
+    """Fly any policy (a network's greedy one, a scripted rule set) greedily in the scenario
+    file `world` on the evaluation seeds: the one path behind every success rate we report."""
     if video_dir is None:
         return evaluate_policy(policy, scenario_env_factory(world, autopilot), world=str(world),
                                episodes=episodes, seed=seed, progress=progress)
