@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from sitl_bridge.commands import eval as eval_command
 from sitl_bridge.envs.features import observation_layout
@@ -26,6 +27,7 @@ from sitl_bridge.rl.rule_policy import (
     rule_policy,
     verify_rules,
 )
+from sitl_bridge.rl.tree_policy import Leaf, Split, TreePolicy, feature_labels, tree_rules
 
 REPO = Path(__file__).resolve().parent.parent
 WORLDS = REPO / "worlds"
@@ -110,13 +112,14 @@ def test_observation_layout_follows_the_feature_list() -> None:
     layout = observation_layout(load_scenario(EMPTY))
     assert layout == {"position": slice(0, 3), "orientation": slice(3, 6), "lidar": slice(6, 41),
                       "dummy": slice(41, 51)}
-    assert observation_layout(load_scenario(OBSTACLE).task.observation)["lidar"] == slice(6, 53)
+    assert observation_layout(load_scenario(OBSTACLE))["lidar"] == slice(6, 53)
 
 
 def test_parse_feature() -> None:
     assert parse_feature("lidar[17]") == ("lidar", 17)
     assert parse_feature(" travel_others [ 1 ] ") == ("travel_others", 1)
     assert parse_feature("own_priority") == ("own_priority", None)
+    assert parse_feature("dummy@2[0]") == ("dummy@2", 0)  # a feature listed twice (observation_layout)
     for bad in ("lidar[-1]", "lidar[1", "lidar[x]", "3lidar", ""):
         assert parse_feature(bad) is None
 
@@ -154,6 +157,22 @@ rules:
     assert policy.fired == [1, 1, 1, 0]
     with pytest.raises(ValueError, match="51 observation values, got 50"):
         policy(np.zeros(50))
+
+
+def test_a_distilled_tree_flies_as_it_decides(tmp_path: Path) -> None:
+    # h-distill's rules document (`tree_rules`) read back by this loader decides as the tree does.
+    up, hover = action_code("up"), action_code("hover")
+    tree = TreePolicy(Split(1, 2.5, Leaf(action_code("north"), 4),
+                            Split(2, 3.0, Split(6 + 17, 1.5, Leaf(up, 2), Leaf(hover, 1)), Leaf(6, 3))))
+    labels = feature_labels(observation_layout(load_scenario(EMPTY)), 51)
+    document = tree_rules(tree, labels, frame="world", name="tree", covers=["empty.yaml"], source="test")
+    path = write_rules(tmp_path, yaml.safe_dump(document, sort_keys=False))
+    policy = rule_policy(path, EMPTY)
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        obs = rng.uniform(0.0, 6.0, size=51).astype(np.float32)
+        assert policy(obs) == tree(obs)
+    assert policy.fired[-1] == 0  # the leaves cover every observation: never the hover fallback
 
 
 def test_names_in_the_rules_frame(tmp_path: Path) -> None:

@@ -53,7 +53,8 @@ FRAME_DEPENDENT = frozenset({0, 1, 2, 3})
 HOVER = 7
 """What a drone does when no rule holds."""
 
-_FEATURE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[\s*(\d+)\s*\])?\s*$")
+_FEATURE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*(?:@\d+)?)\s*(?:\[\s*(\d+)\s*\])?\s*$")
+"""`NAME[INDEX]` or `NAME`; NAME may carry `@N`, the layout's key of a feature listed N times."""
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,8 @@ class RuleSet:
 
 
 def parse_feature(text: str) -> tuple[str, int | None] | None:
-    """`lidar[17]` -> ("lidar", 17), `own_priority` -> ("own_priority", None); None if malformed."""
+    """`lidar[17]` -> ("lidar", 17), `own_priority` -> ("own_priority", None),
+    `dummy@2[0]` -> ("dummy@2", 0); None if malformed."""
     match = _FEATURE.match(text)
     if match is None:
         return None
@@ -121,7 +123,7 @@ def _condition(node: Node) -> Condition:
     feature_node = node.get("feature")
     text = feature_node.string()
     parsed = parse_feature(text)
-    if parsed is None or parsed[0] not in FEATURES:
+    if parsed is None or parsed[0].split("@")[0] not in FEATURES:
         raise feature_node.error(f"NAME[INDEX] or NAME with NAME an observation feature ({', '.join(FEATURES)})")
     op = node.get("op").string(tuple(OPS))
     value = node.get("value").number()
