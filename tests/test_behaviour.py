@@ -253,3 +253,58 @@ def test_climb_over_rule_from_lidar_and_thesis_rule_2() -> None:
     assert (climb.support_seeds, climb.support_episodes, climb.in_yaml) == (2, 2, True)
     checks = {c.rule: c for c in thesis_checks(analysis, facts)}
     assert checks[2].recovered and (checks[2].support_seeds, checks[2].seeds) == (2, 3)
+
+
+def test_recording_env_keeps_what_the_policy_saw() -> None:
+    from sitl_bridge.rl.behaviour_runs import RecordingEnv
+    from sitl_bridge.rl.drones_env import scenario_env_factory
+    from sitl_bridge.rl.evaluate import evaluate_on
+
+    seen: list[np.ndarray] = []
+
+    def policy(obs: np.ndarray) -> int:
+        seen.append(obs.copy())
+        return 3 if len(seen) % 4 else 7
+
+    env = RecordingEnv(scenario_env_factory(WORLDS / "empty.yaml")(0))
+    try:
+        _, traces = evaluate_on(env, policy, world="empty", episodes=2, seed=0)
+    finally:
+        env.close()
+    recorded = env.observations
+    assert sorted(recorded) == [(0, 0), (1, 0)]
+    assert [len(recorded[(t.episode, 0)]) for t in traces] == [t.steps for t in traces]
+    assert np.array_equal(np.concatenate([recorded[(0, 0)], recorded[(1, 0)]]), np.array(seen))
+
+
+def test_rules_command_over_two_runs_writes_a_yaml(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+    import json
+
+    from sitl_bridge.commands import rules, train
+
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    train.register(sub)
+    rules.register(sub)
+
+    def cli(*argv: str) -> int:
+        args = parser.parse_args(list(argv))
+        return args.func(args)
+
+    for seed in ("0", "1"):
+        assert cli("train", str(WORLDS / "empty.yaml"), "--episodes", "1", "--seed", seed, "--out",
+                   str(tmp_path / "runs"), "--batch-size", "16", "--layers", "2", "--hidden-units", "16",
+                   "--eval-every", "0", "--eval-episodes", "1", "--no-progress") == 0
+    capsys.readouterr()
+    runs = sorted(str(p) for p in (tmp_path / "runs").iterdir())
+    out = tmp_path / "rules.yaml"
+    assert cli("rules", *runs, "--episodes", "2", "--out", str(out), "--json") == 0
+    report = json.loads(capsys.readouterr().out)
+    assert [s["label"] for s in report["behaviour"]["per_seed"]] == ["0", "1"]
+    assert sum(sum(s["counts"].values()) for s in report["behaviour"]["per_seed"]) == 4
+    assert report["episodes"] == 4 and report["frame"] == "world"
+    assert [c["rule"] for c in report["thesis_rules"]] == [0, 1, 2, 3, 4, 5]
+    document = load_yaml(out).value
+    assert document == report["rules_yaml"] and document["covers"] == ["empty.yaml"]
+    assert document["rules"][-1]["action"] == "toward goal"

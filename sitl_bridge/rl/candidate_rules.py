@@ -316,7 +316,7 @@ class ThesisCheck:
     text: str
     applicable: bool
     recovered: bool | None = None
-    """Held in more than half of the seeds (None: not applicable)."""
+    """Held in more than half of the seeds (None: not applicable, or no episode to judge by)."""
     support_seeds: int = 0
     seeds: int = 0
     support_episodes: int = 0
@@ -326,6 +326,8 @@ class ThesisCheck:
     def line(self) -> str:
         if not self.applicable:
             return f"rule {self.rule} ({self.text}): not applicable here: {self.evidence}"
+        if self.recovered is None:
+            return f"rule {self.rule} ({self.text}): no evidence in {self.seeds} seeds ({self.evidence}: none)"
         verdict = "recovered" if self.recovered else "not recovered"
         return (f"rule {self.rule} ({self.text}): {verdict} in {self.support_seeds} of {self.seeds} seeds, "
                 f"{self.support_episodes} of {self.episodes} {self.evidence}")
@@ -354,7 +356,7 @@ def _per_seed(analysis: BehaviourAnalysis, rule: int, units, held) -> ThesisChec
         check.support_episodes += good
         check.episodes += len(items)
         check.support_seeds += bool(items) and good >= SEED_SUPPORT_SHARE * len(items)
-    check.recovered = check.support_seeds * 2 > check.seeds
+    check.recovered = check.support_seeds * 2 > check.seeds if check.episodes else None
     return check
 
 
