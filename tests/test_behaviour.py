@@ -15,6 +15,7 @@ from sitl_bridge.rl.actions_named import ACTION_NAMES_BY_FRAME, action_code, act
 from sitl_bridge.rl.behaviour import BehaviourAnalysis, RunBehaviour, classify, classify_episode
 from sitl_bridge.rl.candidate_rules import (
     candidate_rules,
+    fidelity,
     rules_document,
     scenario_facts,
     thesis_checks,
@@ -183,8 +184,8 @@ def test_candidate_rules_support_and_yaml_round_trip(tmp_path: Path) -> None:
         traces_by_run[str(seed)] = traces
         runs.append(RunBehaviour(str(seed), classify(traces, run=str(seed))))
     analysis = BehaviourAnalysis("two_drones_empty_relative", runs)
-    rules = {r.manoeuvre: r for r in candidate_rules(analysis, facts, observations(analysis, traces_by_run,
-                                                                                   facts.layout))}
+    obs = observations(analysis, traces_by_run, facts.layout)
+    rules = {r.manoeuvre: r for r in candidate_rules(analysis, facts, obs)}
     right, left = rules["pass_right"], rules["pass_left"]
     assert (right.support_seeds, right.seeds, right.support_episodes, right.episodes) == (4, 5, 12, 20)
     assert (left.support_seeds, left.support_episodes) == (1, 8)
@@ -212,6 +213,10 @@ def test_candidate_rules_support_and_yaml_round_trip(tmp_path: Path) -> None:
     assert (checks[3].support_seeds, checks[3].support_episodes, checks[3].episodes) == (4, 12, 20)
     assert not checks[2].applicable and not checks[5].applicable
     assert checks[0].recovered and checks[0].support_episodes == 40
+    assert checks[3].line() == ("rule 3 (head-on: both move to their right): recovered: held in 4 of 5 seeds; "
+                                "12 of 20 successful head-on episodes with both passing right (8 both left)")
+    share, steps = fidelity(document, analysis, facts, obs)
+    assert steps == 400 and share is not None and 0.0 < share < 1.0
 
 
 def test_yield_rule_and_thesis_rule_5_on_a_window_scenario() -> None:
@@ -308,3 +313,17 @@ def test_rules_command_over_two_runs_writes_a_yaml(tmp_path: Path, capsys: pytes
     document = load_yaml(out).value
     assert document == report["rules_yaml"] and document["covers"] == ["empty.yaml"]
     assert document["rules"][-1]["action"] == "toward goal"
+
+
+def test_no_success_gives_no_rules_and_no_evidence() -> None:
+    crashed = [t for e in range(2) for t in head_on(e, "right")]
+    for t in crashed:
+        t.outcome = "crash"
+    analysis = BehaviourAnalysis("two_drones_empty_relative", [RunBehaviour("0", classify(crashed, run="0"))])
+    facts = scenario_facts(load_scenario(WORLDS / "two_drones_empty_relative.yaml"), "two_drones_empty_relative.yaml")
+    assert analysis.split() == {} and analysis.dominant() is None
+    assert candidate_rules(analysis, facts) == []
+    rule3 = thesis_checks(analysis, facts)[3]
+    assert rule3.recovered is None and rule3.line().endswith("no evidence in 1 seeds: no successful head-on episodes")
+    document = rules_document([], analysis, facts)
+    assert [r["action"] for r in document["rules"]] == ["toward goal"]

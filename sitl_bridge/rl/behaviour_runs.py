@@ -21,6 +21,7 @@ from sitl_bridge.rl.candidate_rules import (
     CandidateRule,
     ThesisCheck,
     candidate_rules,
+    fidelity,
     rules_document,
     scenario_facts,
     thesis_checks,
@@ -97,11 +98,15 @@ class RulesReport:
     checks: list[ThesisCheck]
     document: dict
     """The rules YAML (issue-13 contract)."""
+    fidelity: float | None = None
+    """Share of the recorded steps at which the rules YAML picks the network's action."""
+    steps: int = 0
 
     def to_dict(self) -> dict:
         return {**self.summary.to_dict(), "behaviour": self.analysis.to_dict(),
                 "candidate_rules": [r.to_dict() for r in self.rules],
-                "thesis_rules": [c.to_dict() for c in self.checks], "rules_yaml": self.document}
+                "thesis_rules": [c.to_dict() for c in self.checks], "rules_yaml": self.document,
+                "rules_fidelity": self.fidelity, "recorded_steps": self.steps}
 
     def report(self) -> str:
         lines = [self.summary.report(), self.analysis.report(), "candidate rules (* in the rules YAML):"]
@@ -110,6 +115,9 @@ class RulesReport:
                      if r.agreement is not None else "") for r in self.rules]
         if not self.rules:
             lines.append("    none: no episode in which every drone reached its goal")
+        if self.fidelity is not None:
+            lines.append(f"  the rules YAML picks the network's action at {self.fidelity:.0%} of "
+                         f"{self.steps} recorded steps")
         lines.append("thesis rules:")
         lines += [f"  {c.line()}" for c in self.checks]
         return "\n".join(lines)
@@ -137,6 +145,7 @@ def analyse_runs(paths: list[str | Path], world: str | Path | None = None, *, ep
     rules = candidate_rules(analysis, facts, observations)
     summary = summarize_behaviour(str(worlds[0]), episodes * len(paths), pooled, top=top,
                                   frame=scenario.task.action.frame, swap_drones=scenario.task.action.swap_drones)
-    return RulesReport(summary, analysis, rules, thesis_checks(analysis, facts),
-                       rules_document(rules, analysis, facts))
+    document = rules_document(rules, analysis, facts)
+    return RulesReport(summary, analysis, rules, thesis_checks(analysis, facts), document,
+                       *fidelity(document, analysis, facts, observations))
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from sitl_bridge.rl.actions_named import action_name
+from sitl_bridge.rl.actions_named import action_code, action_name
 from sitl_bridge.rl.behaviour import BehaviourAnalysis, EpisodeBehaviour, split_text
 
 SEED_SUPPORT_SHARE = 0.5
@@ -259,25 +259,45 @@ def _holds(condition: dict, obs: np.ndarray, layout: Mapping[str, slice]) -> boo
             "==": value == limit, "!=": value != limit}[condition["op"]]
 
 
+def _decide(chosen: list[CandidateRule], row: np.ndarray, layout: Mapping[str, slice]) -> int | None:
+    """Index of the first rule whose conditions hold for `row` (None: none does)."""
+    return next((k for k, rule in enumerate(chosen) if all(_holds(c, row, layout) for c in rule.when)), None)
+
+
+def _recorded_steps(analysis: BehaviourAnalysis, observations: Observations):  # noqa: ANN202 - generator
+    """(observation, the network's action) of every recorded step."""
+    for episode in analysis.episodes:
+        for d in episode.drones:
+            obs = observations.get((episode.run, episode.episode, d.drone))
+            if obs is not None:
+                yield from zip(obs, d.actions, strict=False)
+
+
 def _agreement(rules: list[CandidateRule], analysis: BehaviourAnalysis, facts: ScenarioFacts,
                observations: Observations) -> None:
     """Fill `agreement` of the YAML's rules over every recorded step (first matching rule)."""
     chosen = [r for r in rules if r.in_yaml]
-    matched = dict.fromkeys(range(len(chosen)), 0)
-    agreed = dict.fromkeys(range(len(chosen)), 0)
-    for episode in analysis.episodes:
-        for d in episode.drones:
-            obs = observations.get((episode.run, episode.episode, d.drone))
-            if obs is None:
-                continue
-            for row, action in zip(obs, d.actions, strict=False):
-                for k, rule in enumerate(chosen):
-                    if all(_holds(c, row, facts.layout) for c in rule.when):
-                        matched[k] += 1
-                        agreed[k] += int(action == rule.action)
-                        break
+    matched, agreed = [0] * len(chosen), [0] * len(chosen)
+    for row, action in _recorded_steps(analysis, observations):
+        k = _decide(chosen, row, facts.layout)
+        if k is not None:
+            matched[k] += 1
+            agreed[k] += int(action == chosen[k].action)
     for k, rule in enumerate(chosen):
         rule.agreement = agreed[k] / matched[k] if matched[k] else None
+
+
+def fidelity(document: dict, analysis: BehaviourAnalysis, facts: ScenarioFacts,
+             observations: Observations) -> tuple[float | None, int]:
+    """(share of the recorded steps at which the rules YAML picks the network's action, steps)."""
+    chosen = [CandidateRule(manoeuvre="", text=r["text"], action=action_code(r["action"], document["frame"]),
+                            action_name=r["action"], when=r.get("when", [])) for r in document["rules"]]
+    same = total = 0
+    for row, action in _recorded_steps(analysis, observations):
+        k = _decide(chosen, row, facts.layout)
+        total += 1
+        same += int(k is not None and chosen[k].action == action)
+    return (same / total if total else None), total
 
 
 def rules_document(rules: list[CandidateRule], analysis: BehaviourAnalysis, facts: ScenarioFacts) -> dict:
@@ -316,21 +336,25 @@ class ThesisCheck:
     text: str
     applicable: bool
     recovered: bool | None = None
-    """Held in more than half of the seeds (None: not applicable, or no episode to judge by)."""
+    """Held in more than half of the seeds (None: not applicable, or nothing to judge by)."""
     support_seeds: int = 0
     seeds: int = 0
     support_episodes: int = 0
     episodes: int = 0
+    units: str = ""
+    """What `episodes` counts (`successful head-on episodes`)."""
     evidence: str = ""
+    """What `support_episodes` counts among them (`with both passing right`), or why not applicable."""
 
     def line(self) -> str:
+        head = f"rule {self.rule} ({self.text}):"
         if not self.applicable:
-            return f"rule {self.rule} ({self.text}): not applicable here: {self.evidence}"
+            return f"{head} not applicable here: {self.evidence}"
         if self.recovered is None:
-            return f"rule {self.rule} ({self.text}): no evidence in {self.seeds} seeds ({self.evidence}: none)"
+            return f"{head} no evidence in {self.seeds} seeds: no {self.units}"
         verdict = "recovered" if self.recovered else "not recovered"
-        return (f"rule {self.rule} ({self.text}): {verdict} in {self.support_seeds} of {self.seeds} seeds, "
-                f"{self.support_episodes} of {self.episodes} {self.evidence}")
+        return (f"{head} {verdict}: held in {self.support_seeds} of {self.seeds} seeds; "
+                f"{self.support_episodes} of {self.episodes} {self.units} {self.evidence}")
 
     def to_dict(self) -> dict:
         return {**asdict(self), "line": self.line()}
@@ -346,13 +370,14 @@ THESIS_RULES = (
 )
 
 
-def _per_seed(analysis: BehaviourAnalysis, rule: int, units, held) -> ThesisCheck:  # noqa: ANN001
-    """A check whose evidence units (drone-episodes or episodes) per run come from `units(run)`
-    and hold when `held(unit)`; the rule holds in a seed when at least half of its units do."""
-    check = ThesisCheck(rule, THESIS_RULES[rule], True, seeds=len(analysis.runs))
+def _per_seed(analysis: BehaviourAnalysis, rule: int, units: str, evidence: str, select, held,  # noqa: ANN001
+              ) -> ThesisCheck:
+    """A check over the items `select(run)` of every run (drone-episodes or episodes) that hold
+    when `held(item)`; the rule holds in a seed when at least half of its items do."""
+    check = ThesisCheck(rule, THESIS_RULES[rule], True, seeds=len(analysis.runs), units=units, evidence=evidence)
     for run in analysis.runs:
-        items = units(run)
-        good = sum(bool(held(u)) for u in items)
+        items = select(run)
+        good = sum(bool(held(item)) for item in items)
         check.support_episodes += good
         check.episodes += len(items)
         check.support_seeds += bool(items) and good >= SEED_SUPPORT_SHARE * len(items)
@@ -365,51 +390,47 @@ def thesis_checks(analysis: BehaviourAnalysis, facts: ScenarioFacts) -> list[The
     def not_applicable(rule: int, why: str) -> ThesisCheck:
         return ThesisCheck(rule, THESIS_RULES[rule], False, seeds=len(analysis.runs), evidence=why)
 
-    checks = [_per_seed(analysis, 0, lambda r: r.drone_episodes,
+    checks = [_per_seed(analysis, 0, "drone-episodes", "without a ground crash (descent is capped at the "
+                        "action speed)", lambda r: r.drone_episodes,
                         lambda d: not (d.outcome == "crash" and (d.end_altitude_m or 0.0) < GROUND_CRASH_M))]
-    checks[0].evidence = "drone-episodes without a ground crash (descent is capped at the action speed)"
 
     if facts.num_drones == 1 and not facts.lone_obstacle and not facts.opening:
-        check = _per_seed(analysis, 1, lambda r: [d for d in r.drone_episodes if d.manoeuvre == "direct"],
-                          lambda d: d.planner_share >= PLANNER_SHARE)
-        check.evidence = f"direct flights using action 6 in at least {PLANNER_SHARE:.0%} of their steps"
+        checks.append(_per_seed(analysis, 1, "direct flights",
+                                f"using action 6 in at least {PLANNER_SHARE:.0%} of their steps",
+                                lambda r: [d for d in r.drone_episodes if d.manoeuvre == "direct"],
+                                lambda d: d.planner_share >= PLANNER_SHARE))
     else:
-        check = not_applicable(1, "the straight path is not always safe here (obstacles or other drones)")
-    checks.append(check)
+        checks.append(not_applicable(1, "the straight path is not always safe here (obstacles or other drones)"))
 
     if facts.num_drones == 1 and facts.lone_obstacle:
-        check = _per_seed(analysis, 2, lambda r: [d for d in r.drone_episodes if d.outcome == "goal"],
-                          lambda d: d.manoeuvre == "climb_over")
-        check.evidence = "successful drone-episodes climbing over"
+        checks.append(_per_seed(analysis, 2, "successful drone-episodes", "climbing over",
+                                lambda r: [d for d in r.drone_episodes if d.outcome == "goal"],
+                                lambda d: d.manoeuvre == "climb_over"))
     else:
-        check = not_applicable(2, "no lone static obstacle with a single drone")
-    checks.append(check)
+        checks.append(not_applicable(2, "no lone static obstacle with a single drone"))
 
     if any(e.head_on for e in analysis.episodes) and not facts.opening:  # at an opening: rule 5
-        check = _per_seed(analysis, 3, lambda r: [e for e in r.episodes if e.success and e.head_on],
-                          lambda e: all(d.manoeuvre == "pass_right" for d in e.drones))
         mirrored = sum(e.success and e.head_on and all(d.manoeuvre == "pass_left" for d in e.drones)
                        for e in analysis.episodes)
-        check.evidence = f"successful head-on episodes with both passing right ({mirrored} both left)"
+        checks.append(_per_seed(analysis, 3, "successful head-on episodes",
+                                f"with both passing right ({mirrored} both left)",
+                                lambda r: [e for e in r.episodes if e.success and e.head_on],
+                                lambda e: all(d.manoeuvre == "pass_right" for d in e.drones)))
     else:
-        check = not_applicable(3, "no head-on encounter in open space")
-    checks.append(check)
+        checks.append(not_applicable(3, "no head-on encounter in open space"))
 
     if facts.opening:
-        check = _per_seed(analysis, 4, lambda r: r.drone_episodes, lambda d: d.outcome == "goal")
-        check.evidence = "drone-episodes through the opening to the goal"
+        checks.append(_per_seed(analysis, 4, "drone-episodes", "through the opening to the goal",
+                                lambda r: r.drone_episodes, lambda d: d.outcome == "goal"))
     else:
-        check = not_applicable(4, "no opening")
-    checks.append(check)
+        checks.append(not_applicable(4, "no opening"))
 
     if facts.opening and facts.num_drones > 1:
-        check = _per_seed(analysis, 5, lambda r: [e for e in r.episodes if e.success],
-                          lambda e: any(d.manoeuvre == "yield_hover" for d in e.drones)
-                          and e.follows_priority)
         backs = sum(e.success and e.shows("yield_back_off") for e in analysis.episodes)
-        check.evidence = (f"successful episodes where the lower-priority drone hovers ({backs} with a "
-                          "back-off instead)")
+        checks.append(_per_seed(analysis, 5, "successful episodes",
+                                f"where the lower-priority drone hovers ({backs} with a back-off instead)",
+                                lambda r: [e for e in r.episodes if e.success],
+                                lambda e: e.shows("yield_hover") and e.follows_priority))
     else:
-        check = not_applicable(5, "not two drones at an opening")
-    checks.append(check)
+        checks.append(not_applicable(5, "not two drones at an opening"))
     return checks
