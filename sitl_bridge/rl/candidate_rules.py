@@ -220,8 +220,13 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
         rule.flyable = False
         rule.text = f"{'another drone near' if about_drone else 'an obstacle ahead'}: {doing}"
         needs = "travel_others" if about_drone else "lidar"
-        rule.note = ("no observations recorded" if not len(rows)
-                     else f"not expressible in this scenario's features (needs {needs})")
+        if not len(rows):
+            rule.note = "no observations recorded"
+        elif needs not in facts.layout:
+            rule.note = f"not expressible in this scenario's features (needs {needs})"
+        else:
+            rule.note = ("the other drone was not always ahead when it started" if about_drone
+                         else "no lidar ray saw something every time it started")
         return rule
     rule.when, situation = condition
     rule.text = f"{situation}: {doing}"
