@@ -14,10 +14,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from sitl_bridge.rl.actions_named import action_name
 from sitl_bridge.rl.rollout import Trace
-
-ACTION_NAMES = ("east", "west", "south", "north", "down", "up", "toward goal", "hover")
-"""The thesis's action table (world frame; `goal` frame: 0 right, 1 left, 2 back, 3 forward)."""
 
 CLIMB_OVER_M = 0.8
 """Rising this far above both start and goal altitude counts as flying over something."""
@@ -25,8 +23,14 @@ SIDESTEP_M = 0.8
 """Leaving the straight start-goal line sideways by this much counts as passing to a side."""
 
 
-def action_name(code: int) -> str:
-    return ACTION_NAMES[code] if 0 <= code < len(ACTION_NAMES) else str(code)
+_SWAPPED = {0: 1, 1: 0, 2: 3, 3: 2}
+"""A `swap_drones` drone flies code 0 as 1 and 2 as 3 (world frame, `envs/actions.py`)."""
+
+
+def flown_name(code: int, frame: str = "world", swapped: bool = False) -> str:
+    """What action `code` makes a drone do, named in the scenario's action `frame`
+    (`swapped`: the drone is in the world frame's `swap_drones`, so 0 flies west)."""
+    return action_name(_SWAPPED.get(code, code) if swapped else code, frame)
 
 
 def run_length(actions: list[int]) -> str:
@@ -79,6 +83,8 @@ class BehaviourSummary:
     first_action_share: dict[str, float]
     top_sequences: list[tuple[str, int]]
     """Most common full action sequences (run-length compressed) and how often they occurred."""
+    frame: str = "world"
+    """The action frame the names are in (`task.action.frame`)."""
     per_drone_action_share: dict[int, dict[str, float]] = field(default_factory=dict)
     climb_over_share: float | None = None
     """Share of successful drone-episodes that rose clearly above start and goal."""
@@ -94,7 +100,7 @@ class BehaviourSummary:
         lines = [f"{self.world}: {self.episodes} greedy episodes; outcomes "
                  + ", ".join(f"{k} {v:.0%}" for k, v in self.outcomes.items())]
         lines += [f"  - {s}" for s in self.statements]
-        lines.append("  actions: " + ", ".join(f"{k} {v:.0%}" for k, v in self.action_share.items()))
+        lines.append(f"  actions ({self.frame} frame): " + ", ".join(f"{k} {v:.0%}" for k, v in self.action_share.items()))
         for drone, share in self.per_drone_action_share.items():
             lines.append(f"  drone {drone}: " + ", ".join(f"{k} {v:.0%}" for k, v in share.items()))
         lines.append("  typical sequences:")
@@ -102,44 +108,52 @@ class BehaviourSummary:
         return "\n".join(lines)
 
 
-def _shares(counter: Counter, total: int) -> dict[str, float]:
-    return {f"{code} {action_name(code)}": count / total for code, count in counter.most_common()} if total else {}
+def _shares(counter: Counter, total: int, frame: str, swapped: bool = False) -> dict[str, float]:
+    if not total:
+        return {}
+    return {f"{code} {flown_name(code, frame, swapped)}": count / total for code, count in counter.most_common()}
 
 
-def summarize_behaviour(world: str, episodes: int, traces: list[Trace], top: int = 5) -> BehaviourSummary:
-    """Histograms, typical sequences and statements for a set of greedy rollouts."""
+def summarize_behaviour(world: str, episodes: int, traces: list[Trace], top: int = 5, *,
+                        frame: str = "world", swap_drones: tuple[int, ...] = ()) -> BehaviourSummary:
+    """Histograms, typical sequences and statements for a set of greedy rollouts; actions are
+    named in the scenario's action `frame` (`task.action.frame`), per drone with its
+    `swap_drones` applied (the pooled shares name the unswapped meaning)."""
     all_actions = Counter(a for t in traces for a in t.actions)
     total = sum(all_actions.values())
     outcomes = Counter(t.outcome for t in traces)
     summary = BehaviourSummary(
         world=world, episodes=episodes,
         outcomes={k: v / len(traces) for k, v in outcomes.most_common()} if traces else {},
-        action_share=_shares(all_actions, total),
-        first_action_share=_shares(Counter(t.actions[0] for t in traces if t.actions), len(traces)),
+        action_share=_shares(all_actions, total, frame),
+        first_action_share=_shares(Counter(t.actions[0] for t in traces if t.actions), len(traces), frame),
         top_sequences=Counter(run_length(t.actions) for t in traces).most_common(top),
+        frame=frame,
     )
     drones = sorted({t.drone for t in traces})
     if len(drones) > 1:
         for drone in drones:
             mine = Counter(a for t in traces if t.drone == drone for a in t.actions)
-            summary.per_drone_action_share[drone] = _shares(mine, sum(mine.values()))
+            summary.per_drone_action_share[drone] = _shares(mine, sum(mine.values()), frame,
+                                                            drone in swap_drones)
 
     wins = [g for t in traces if t.outcome == "goal" and (g := path_geometry(t)) is not None]
     if wins:
         summary.climb_over_share = float(np.mean([g.climb_above_m >= CLIMB_OVER_M for g in wins]))
         summary.left_share = float(np.mean([g.lateral_m >= SIDESTEP_M for g in wins]))
         summary.right_share = float(np.mean([g.lateral_m <= -SIDESTEP_M for g in wins]))
-    summary.statements = _statements(summary, all_actions, total, wins)
+    summary.statements = _statements(summary, all_actions, total, wins, frame)
     return summary
 
 
-def _statements(summary: BehaviourSummary, actions: Counter, total: int, wins: list[PathGeometry]) -> list[str]:
+def _statements(summary: BehaviourSummary, actions: Counter, total: int, wins: list[PathGeometry],
+                frame: str) -> list[str]:
     out: list[str] = []
     if total:
         code, count = actions.most_common(1)[0]
         share = count / total
         word = "mostly" if share >= 0.5 else "most often"
-        out.append(f"{word} action {code} ({action_name(code)}): {share:.0%} of all actions")
+        out.append(f"{word} action {code} ({action_name(code, frame)}): {share:.0%} of all actions")
     if summary.climb_over_share is not None:
         if summary.climb_over_share >= 0.5:
             climbs = [g.climb_above_m for g in wins if g.climb_above_m >= CLIMB_OVER_M]

@@ -1,0 +1,441 @@
+"""Candidate traffic rules from classified behaviour across seeds, in words and as a rules YAML.
+
+Each manoeuvre that successful episodes show becomes a candidate rule: the situation in which it
+started (read from the observation before its first step, so the condition is over the
+scenario's own observation features), the action the policy flew there (named in the scenario's
+action frame) and its support: the seeds in which it shows in at least half of the successful
+episodes, and the successful episodes that show it. Competing manoeuvres (left vs right, hover vs
+back off) stay side by side in the candidate list; the YAML, whose first matching rule wins,
+takes the better supported one and says so. The YAML's format is the one `eval --rules` flies
+(the issue-13 contract: name, covers, frame, source, rules of text/when/action/support).
+
+`thesis_checks` maps the thesis's rules 0-5 to checks on the same classifications: recovered
+(held in more than half of the seeds), not recovered, or not applicable to the scenario.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from sitl_bridge.rl.actions_named import action_code, action_name
+from sitl_bridge.rl.behaviour import BehaviourAnalysis, EpisodeBehaviour, split_text
+
+SEED_SUPPORT_SHARE = 0.5
+"""A manoeuvre holds in a seed when it shows in at least this share of its successful episodes."""
+YAML_MIN_SEED_SHARE = 0.5
+"""A candidate enters the YAML when it holds in at least this share of the seeds (a majority
+behaviour, not one run's habit)."""
+THRESHOLD_STEP = 0.1
+"""Condition thresholds are rounded outward to this (metres): readable, and still true at every
+observed trigger."""
+LATERAL_MARGIN_M = 0.5
+"""Sideways slack added to the largest sideways offset of the other drone seen at a trigger."""
+GROUND_CRASH_M = 0.5
+"""A crash ending this low above the ground hit the ground (thesis rule 0)."""
+PLANNER_SHARE = 0.5
+"""Direct flights with at least this share of action 6 use the planner's path (thesis rule 1)."""
+
+RULE_MANOEUVRES = ("yield_hover", "yield_back_off", "pass_right", "pass_left", "climb_over", "direct")
+"""Manoeuvres that make rules, in YAML order (most specific situation first, `direct` last)."""
+COMPETING = (("pass_right", "pass_left"), ("yield_hover", "yield_back_off"))
+WORDS = {"direct": "fly toward the goal", "climb_over": "climb over it", "pass_left": "move to its left",
+         "pass_right": "move to its right", "yield_hover": "hover until it has passed",
+         "yield_back_off": "move back until it has passed"}
+TOWARD_GOAL = 6
+"""The planner's action (the thesis's code 6), the rule for the straight path."""
+OTHER_DRONE = ("yield_hover", "yield_back_off")
+"""Manoeuvres that are about another drone in every scenario; passes are when there are others."""
+
+Observations = Mapping[tuple[str, int, int], np.ndarray]
+"""(run label, episode, drone) -> that drone's observation before each of its steps (steps x size)."""
+
+
+@dataclass(frozen=True)
+class ScenarioFacts:
+    """What rule building needs to know about a scenario."""
+
+    file: str
+    """Scenario file name (the YAML's `covers`)."""
+    frame: str = "world"
+    layout: Mapping[str, slice] = field(default_factory=dict)
+    """Observation feature name -> its slice of the observation vector."""
+    num_drones: int = 1
+    lone_obstacle: bool = False
+    """Exactly one static obstacle that is not a wall (thesis rule 2's situation)."""
+    opening: bool = False
+    """A wall with an opening (thesis rules 4 and 5)."""
+    lidar_range_m: float = 5.0
+
+
+def scenario_facts(scenario, file: str | Path) -> ScenarioFacts:  # noqa: ANN001 - envs.scenario.Scenario
+    """Facts of a loaded `envs.scenario.Scenario` (its file name as `file`)."""
+    layout, start = {}, 0
+    for feature in scenario.task.observation:
+        layout[feature.name] = slice(start, start + feature.size)
+        start += feature.size
+    static = [o for o in scenario.world.obstacles if not o.dynamic]
+    return ScenarioFacts(
+        file=Path(file).name, frame=scenario.task.action.frame, layout=layout, num_drones=scenario.num_drones,
+        lone_obstacle=len(static) == 1 and static[0].shape.kind != "wall",
+        opening=any(o.shape.opening is not None for o in static),
+        lidar_range_m=scenario.limits.lidar_range_m)
+
+
+@dataclass
+class CandidateRule:
+    """One candidate rule: situation -> action, with its support across seeds."""
+
+    manoeuvre: str
+    text: str
+    action: int
+    action_name: str
+    when: list[dict] = field(default_factory=list)
+    """Conditions over observation features (`{feature, op, value}`), all must hold."""
+    support_seeds: int = 0
+    seeds: int = 0
+    support_episodes: int = 0
+    episodes: int = 0
+    """Successful episodes of all seeds (the denominator of `support_episodes`)."""
+    flyable: bool = True
+    """Its conditions are expressible in the scenario's features (else text only)."""
+    in_yaml: bool = False
+    note: str = ""
+    agreement: float | None = None
+    """Share of recorded steps where this rule is the first that holds at which the policy flew
+    its action (how well the rule imitates the network there)."""
+
+    def plain(self) -> str:
+        """`another drone ahead within 3 m: move to its right (9 of 10 seeds, 412 episodes)`."""
+        note = f"; {self.note}" if self.note else ""
+        return (f"{self.text} ({self.support_seeds} of {self.seeds} seeds, "
+                f"{self.support_episodes} of {self.episodes} successful episodes{note})")
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "plain": self.plain()}
+
+
+def _successes(analysis: BehaviourAnalysis) -> dict[str, list[EpisodeBehaviour]]:
+    return {run.label: [e for e in run.episodes if e.success] for run in analysis.runs}
+
+
+def support(analysis: BehaviourAnalysis, manoeuvre: str) -> tuple[int, int]:
+    """(seeds in which `manoeuvre` holds, successful episodes showing it)."""
+    seeds = episodes = 0
+    for wins in _successes(analysis).values():
+        showing = sum(e.shows(manoeuvre) for e in wins)
+        episodes += showing
+        seeds += bool(wins) and showing >= SEED_SUPPORT_SHARE * len(wins)
+    return seeds, episodes
+
+
+def _up(value: float) -> float:
+    return round(math.ceil(value / THRESHOLD_STEP - 1e-9) * THRESHOLD_STEP, 6)
+
+
+def _feature(layout: Mapping[str, slice], name: str, index: int) -> str:
+    block = layout[name]
+    return name if block.stop - block.start == 1 else f"{name}[{index}]"
+
+
+def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations) -> np.ndarray:
+    """Observations before the first step of `manoeuvre` in the successful episodes (rows)."""
+    rows = []
+    for episode in analysis.episodes:
+        if not episode.success:
+            continue
+        for d in episode.drones:
+            obs = observations.get((episode.run, episode.episode, d.drone))
+            if d.manoeuvre == manoeuvre and d.trigger_step is not None and obs is not None \
+                    and d.trigger_step < len(obs):
+                rows.append(np.asarray(obs[d.trigger_step], dtype=float))
+    return np.array(rows)
+
+
+def _drone_condition(rows: np.ndarray, facts: ScenarioFacts, manoeuvre: str) -> tuple[list[dict], str] | None:
+    """Another drone ahead (travel frame) within the largest distance seen at the triggers."""
+    if "travel_others" not in facts.layout:
+        return None
+    base = facts.layout["travel_others"].start
+    ahead, side = rows[:, base + 1], rows[:, base]
+    if float(ahead.min()) <= 0.0:
+        return None  # the other was not always ahead when it started: not this situation
+    reach, width = _up(float(ahead.max())), _up(float(np.abs(side).max()) + LATERAL_MARGIN_M)
+    forward, sideways = _feature(facts.layout, "travel_others", 1), _feature(facts.layout, "travel_others", 0)
+    when = [{"feature": forward, "op": ">", "value": 0.0}, {"feature": forward, "op": "<=", "value": reach},
+            {"feature": sideways, "op": ">=", "value": -width}, {"feature": sideways, "op": "<=", "value": width}]
+    situation = f"another drone ahead within {reach:g} m (within {width:g} m sideways)"
+    if manoeuvre in OTHER_DRONE and "own_priority" in facts.layout:
+        priority = rows[:, facts.layout["own_priority"].start]
+        if float(priority.max()) < 0.5:
+            when.insert(0, {"feature": _feature(facts.layout, "own_priority", 0), "op": "<", "value": 0.5})
+            situation += " and own priority lower"
+    return when, situation
+
+
+def _lidar_condition(rows: np.ndarray, facts: ScenarioFacts) -> tuple[list[dict], str] | None:
+    """The lidar ray that read shortest at every trigger, below the longest such reading."""
+    if "lidar" not in facts.layout:
+        return None
+    block = rows[:, facts.layout["lidar"]]
+    longest = block.max(axis=0)
+    ray = int(np.argmin(longest))
+    if longest[ray] >= facts.lidar_range_m - 1e-6:
+        return None  # no ray saw something at every trigger
+    reach = _up(float(longest[ray]))
+    feature = _feature(facts.layout, "lidar", ray)
+    return [{"feature": feature, "op": "<=", "value": reach}], f"something within {reach:g} m on {feature}"
+
+
+def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts,
+               observations: Observations) -> CandidateRule | None:
+    seeds, episodes = support(analysis, manoeuvre)
+    if not episodes:
+        return None
+    actions = [d.action for e in analysis.episodes if e.success for d in e.drones
+               if d.manoeuvre == manoeuvre and d.action is not None]
+    code = max(set(actions), key=lambda a: (actions.count(a), -a))
+    rule = CandidateRule(manoeuvre=manoeuvre, text="", action=code, action_name=action_name(code, facts.frame),
+                         support_seeds=seeds, seeds=len(analysis.runs), support_episodes=episodes,
+                         episodes=sum(len(w) for w in _successes(analysis).values()))
+    if manoeuvre == "direct":
+        # The straight start-goal path is what action 6 flies for every drone; the network's own
+        # codes for it differ per drone in the world frame, so they are only reported.
+        rule.action, rule.action_name = TOWARD_GOAL, action_name(TOWARD_GOAL, facts.frame)
+        rule.text = f"otherwise {WORDS[manoeuvre]} (action {TOWARD_GOAL} {rule.action_name})"
+        rule.note = f"the network flew it mostly with action {code} {action_name(code, facts.frame)}"
+        return rule
+    doing = f"{WORDS[manoeuvre]} (action {code} {rule.action_name})"
+    about_drone = manoeuvre in OTHER_DRONE or facts.num_drones > 1
+    rows = _triggers(analysis, manoeuvre, observations)
+    condition = None
+    if len(rows):
+        condition = _drone_condition(rows, facts, manoeuvre) if about_drone else _lidar_condition(rows, facts)
+    if condition is None:
+        rule.flyable = False
+        rule.text = f"{'another drone near' if about_drone else 'an obstacle ahead'}: {doing}"
+        needs = "travel_others" if about_drone else "lidar"
+        if not len(rows):
+            rule.note = "no observations recorded"
+        elif needs not in facts.layout:
+            rule.note = f"not expressible in this scenario's features (needs {needs})"
+        else:
+            rule.note = ("the other drone was not always ahead when it started" if about_drone
+                         else "no lidar ray saw something every time it started")
+        return rule
+    rule.when, situation = condition
+    rule.text = f"{situation}: {doing}"
+    return rule
+
+
+def candidate_rules(analysis: BehaviourAnalysis, facts: ScenarioFacts,
+                    observations: Observations | None = None) -> list[CandidateRule]:
+    """Candidate rules in YAML order; `in_yaml` marks those the rules YAML keeps."""
+    observations = observations or {}
+    found = {m: r for m in RULE_MANOEUVRES if (r := _candidate(analysis, m, facts, observations)) is not None}
+    dropped = set()
+    for a, b in COMPETING:
+        if a in found and b in found:
+            keep, drop = sorted((found[a], found[b]),
+                                key=lambda r: (-r.support_seeds, -r.support_episodes, r.manoeuvre))
+            drop.note = "; ".join(filter(None, [drop.note, f"competes with {keep.manoeuvre} (kept in the YAML)"]))
+            keep.note = "; ".join(filter(None, [keep.note, f"competes with {drop.manoeuvre} "
+                                                           f"({drop.support_seeds} seeds)"]))
+            dropped.add(drop.manoeuvre)
+    rules = list(found.values())
+    for rule in rules:
+        majority = rule.support_seeds >= YAML_MIN_SEED_SHARE * rule.seeds
+        rule.in_yaml = (rule.flyable and rule.manoeuvre not in dropped
+                        and (majority or rule.manoeuvre == "direct"))
+    _agreement(rules, analysis, facts, observations)
+    return rules
+
+
+def _holds(condition: dict, obs: np.ndarray, layout: Mapping[str, slice]) -> bool:
+    name, _, index = condition["feature"].partition("[")
+    value = float(obs[layout[name].start + (int(index.rstrip("]")) if index else 0)])
+    limit = float(condition["value"])
+    return {"<": value < limit, "<=": value <= limit, ">": value > limit, ">=": value >= limit,
+            "==": value == limit, "!=": value != limit}[condition["op"]]
+
+
+def _decide(chosen: list[CandidateRule], row: np.ndarray, layout: Mapping[str, slice]) -> int | None:
+    """Index of the first rule whose conditions hold for `row` (None: none does)."""
+    return next((k for k, rule in enumerate(chosen) if all(_holds(c, row, layout) for c in rule.when)), None)
+
+
+def _recorded_steps(analysis: BehaviourAnalysis, observations: Observations):  # noqa: ANN202 - generator
+    """(observation, the network's action) of every recorded step."""
+    for episode in analysis.episodes:
+        for d in episode.drones:
+            obs = observations.get((episode.run, episode.episode, d.drone))
+            if obs is not None:
+                yield from zip(obs, d.actions, strict=False)
+
+
+def _agreement(rules: list[CandidateRule], analysis: BehaviourAnalysis, facts: ScenarioFacts,
+               observations: Observations) -> None:
+    """Fill `agreement` of the YAML's rules over every recorded step (first matching rule)."""
+    chosen = [r for r in rules if r.in_yaml]
+    matched, agreed = [0] * len(chosen), [0] * len(chosen)
+    for row, action in _recorded_steps(analysis, observations):
+        k = _decide(chosen, row, facts.layout)
+        if k is not None:
+            matched[k] += 1
+            agreed[k] += int(action == chosen[k].action)
+    for k, rule in enumerate(chosen):
+        rule.agreement = agreed[k] / matched[k] if matched[k] else None
+
+
+def fidelity(document: dict, analysis: BehaviourAnalysis, facts: ScenarioFacts,
+             observations: Observations) -> tuple[float | None, int]:
+    """(share of the recorded steps at which the rules YAML picks the network's action, steps)."""
+    chosen = [CandidateRule(manoeuvre="", text=r["text"], action=action_code(r["action"], document["frame"]),
+                            action_name=r["action"], when=r.get("when", [])) for r in document["rules"]]
+    same = total = 0
+    for row, action in _recorded_steps(analysis, observations):
+        k = _decide(chosen, row, facts.layout)
+        total += 1
+        same += int(k is not None and chosen[k].action == action)
+    return (same / total if total else None), total
+
+
+def rules_document(rules: list[CandidateRule], analysis: BehaviourAnalysis, facts: ScenarioFacts) -> dict:
+    """The rules YAML (issue-13 contract) of the candidates marked `in_yaml`; always ends with an
+    unconditional rule (toward the goal when `direct` had no support)."""
+    kept = [r for r in rules if r.in_yaml]
+    if not any(not r.when for r in kept):
+        kept.append(CandidateRule(manoeuvre="direct", text="otherwise fly toward the goal (default: no "
+                                  "direct flight supports it)", action=TOWARD_GOAL,
+                                  action_name=action_name(TOWARD_GOAL, facts.frame)))
+    split = analysis.split()
+    return {
+        "name": f"{Path(facts.file).stem} behaviour rules",
+        "covers": [facts.file],
+        "frame": facts.frame,
+        "source": f"behaviour analysis of {analysis.scenario}: {len(analysis.runs)} seeds, "
+                  f"{len(analysis.episodes)} episodes; {split_text(split) or 'no success'}",
+        "rules": [{"text": r.text, **({"when": r.when} if r.when else {}), "action": r.action_name,
+                   "support": {"seeds": r.support_seeds, "episodes": r.support_episodes}} for r in kept],
+    }
+
+
+def write_rules_yaml(path: str | Path, document: dict) -> Path:
+    """Write a rules document as YAML (readable back with `errors.load_yaml`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(document, sort_keys=False, allow_unicode=True, width=100), encoding="utf-8")
+    return path
+
+
+@dataclass
+class ThesisCheck:
+    """One of the thesis's rules 0-5 checked on the classifications."""
+
+    rule: int
+    text: str
+    applicable: bool
+    recovered: bool | None = None
+    """Held in more than half of the seeds (None: not applicable, or nothing to judge by)."""
+    support_seeds: int = 0
+    seeds: int = 0
+    support_episodes: int = 0
+    episodes: int = 0
+    units: str = ""
+    """What `episodes` counts (`successful head-on episodes`)."""
+    evidence: str = ""
+    """What `support_episodes` counts among them (`with both passing right`), or why not applicable."""
+
+    def line(self) -> str:
+        head = f"rule {self.rule} ({self.text}):"
+        if not self.applicable:
+            return f"{head} not applicable here: {self.evidence}"
+        if self.recovered is None:
+            return f"{head} no evidence in {self.seeds} seeds: no {self.units}"
+        verdict = "recovered" if self.recovered else "not recovered"
+        return (f"{head} {verdict}: held in {self.support_seeds} of {self.seeds} seeds; "
+                f"{self.support_episodes} of {self.episodes} {self.units} {self.evidence}")
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "line": self.line()}
+
+
+THESIS_RULES = (
+    "don't fly too fast toward the ground",
+    "use the planner's path when safe",
+    "fly over a lone static obstacle",
+    "head-on: both move to their right",
+    "go through an opening big enough",
+    "two drones at one opening: the lower priority hovers until the other has passed",
+)
+
+
+def _per_seed(analysis: BehaviourAnalysis, rule: int, units: str, evidence: str, select, held,  # noqa: ANN001
+              ) -> ThesisCheck:
+    """A check over the items `select(run)` of every run (drone-episodes or episodes) that hold
+    when `held(item)`; the rule holds in a seed when at least half of its items do."""
+    check = ThesisCheck(rule, THESIS_RULES[rule], True, seeds=len(analysis.runs), units=units, evidence=evidence)
+    for run in analysis.runs:
+        items = select(run)
+        good = sum(bool(held(item)) for item in items)
+        check.support_episodes += good
+        check.episodes += len(items)
+        check.support_seeds += bool(items) and good >= SEED_SUPPORT_SHARE * len(items)
+    check.recovered = check.support_seeds * 2 > check.seeds if check.episodes else None
+    return check
+
+
+def thesis_checks(analysis: BehaviourAnalysis, facts: ScenarioFacts) -> list[ThesisCheck]:
+    """The thesis's rules 0-5 as recovered / not recovered / not applicable, with support."""
+    def not_applicable(rule: int, why: str) -> ThesisCheck:
+        return ThesisCheck(rule, THESIS_RULES[rule], False, seeds=len(analysis.runs), evidence=why)
+
+    checks = [_per_seed(analysis, 0, "drone-episodes", "without a ground crash (descent is capped at the "
+                        "action speed)", lambda r: r.drone_episodes,
+                        lambda d: not (d.outcome == "crash" and (d.end_altitude_m or 0.0) < GROUND_CRASH_M))]
+
+    if facts.num_drones == 1 and not facts.lone_obstacle and not facts.opening:
+        checks.append(_per_seed(analysis, 1, "direct flights",
+                                f"using action 6 in at least {PLANNER_SHARE:.0%} of their steps",
+                                lambda r: [d for d in r.drone_episodes if d.manoeuvre == "direct"],
+                                lambda d: d.planner_share >= PLANNER_SHARE))
+    else:
+        checks.append(not_applicable(1, "the straight path is not always safe here (obstacles or other drones)"))
+
+    if facts.num_drones == 1 and facts.lone_obstacle:
+        checks.append(_per_seed(analysis, 2, "successful drone-episodes", "climbing over",
+                                lambda r: [d for d in r.drone_episodes if d.outcome == "goal"],
+                                lambda d: d.manoeuvre == "climb_over"))
+    else:
+        checks.append(not_applicable(2, "no lone static obstacle with a single drone"))
+
+    if any(e.head_on for e in analysis.episodes) and not facts.opening:  # at an opening: rule 5
+        mirrored = sum(e.success and e.head_on and all(d.manoeuvre == "pass_left" for d in e.drones)
+                       for e in analysis.episodes)
+        checks.append(_per_seed(analysis, 3, "successful head-on episodes",
+                                f"with both passing right ({mirrored} both left)",
+                                lambda r: [e for e in r.episodes if e.success and e.head_on],
+                                lambda e: all(d.manoeuvre == "pass_right" for d in e.drones)))
+    else:
+        checks.append(not_applicable(3, "no head-on encounter in open space"))
+
+    if facts.opening:
+        checks.append(_per_seed(analysis, 4, "drone-episodes", "through the opening to the goal",
+                                lambda r: r.drone_episodes, lambda d: d.outcome == "goal"))
+    else:
+        checks.append(not_applicable(4, "no opening"))
+
+    if facts.opening and facts.num_drones > 1:
+        backs = sum(e.success and e.shows("yield_back_off") for e in analysis.episodes)
+        checks.append(_per_seed(analysis, 5, "successful episodes",
+                                f"where the lower-priority drone hovers ({backs} with a back-off instead)",
+                                lambda r: [e for e in r.episodes if e.success],
+                                lambda e: e.shows("yield_hover") and e.follows_priority))
+    else:
+        checks.append(not_applicable(5, "not two drones at an opening"))
+    return checks
