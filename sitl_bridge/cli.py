@@ -30,6 +30,7 @@ COMMAND_MODULES = (
     "curriculum",
     "plot",
     "rules",
+    "replay",
 )
 
 
