@@ -34,6 +34,8 @@ MARGIN_M = 0.6
 """Space around the workspace (or the farthest point drawn) in both views."""
 ALTITUDE_LABEL_M = 0.3
 """The side view labels the runs of actions whose first step changed altitude this much."""
+AXIS_LABELS_IN = 0.7
+"""Width (inches) the y tick labels and axis name take beside a view (sizes figures to scale)."""
 LABEL_CROWD = 0.03
 """Action labels closer than this share of the travel axis' span are stacked, not overlaid."""
 SIDE_ALPHA = 0.5
@@ -95,7 +97,7 @@ def draw_grid(episodes: Sequence[EpisodePicture], out: str | Path, titles: Seque
     across = max(v.span(v.across) for v in views)
     height = max(v.span(2) for v in views)
     cell_w = 4.2
-    cell_h = cell_w * (across + height) / along + 0.7
+    cell_h = (cell_w - AXIS_LABELS_IN) * (across + height) / along + 0.9  # + title and tick labels
     fig = Figure(figsize=(cell_w * columns, cell_h * rows + 0.5), layout="constrained")
     _attach_canvas(fig)
     grid = fig.add_gridspec(2 * rows, columns, height_ratios=[across, height] * rows)
@@ -106,7 +108,7 @@ def draw_grid(episodes: Sequence[EpisodePicture], out: str | Path, titles: Seque
             side = fig.add_subplot(grid[2 * r + 1, c], sharex=top)
             _draw_views(top, side, picture, upto=None, compact=True)
             top.set_title(title, fontsize=8)
-        fig.text(0.5, 0.0, _action_legend(episodes[0].scenario), ha="center", va="bottom", fontsize=7)
+        fig.supxlabel(action_legend(episodes[0].scenario), fontsize=7)
         fig.savefig(out, dpi=dpi)
     finally:
         fig.clear()
@@ -183,9 +185,9 @@ def _episode_figure(picture: EpisodePicture) -> tuple[Any, Any, Any]:
     views = _Views.of(picture)
     along, across, height = views.span(views.along), views.span(views.across), views.span(2)
     width = 8.0
-    plot_h = width * (across + height) / along
+    plot_h = (width - AXIS_LABELS_IN) * (across + height) / along
     if plot_h > 10.0:  # a narrow, deep world: shrink the width instead of growing past a page
-        width, plot_h = width * 10.0 / plot_h, 10.0
+        width, plot_h = AXIS_LABELS_IN + (width - AXIS_LABELS_IN) * 10.0 / plot_h, 10.0
     fig = Figure(figsize=(max(width, 6.0), plot_h + 1.6), layout="constrained")
     _attach_canvas(fig)
     grid = fig.add_gridspec(2, 1, height_ratios=[across, height])
@@ -247,10 +249,11 @@ def _draw_views(top: Any, side: Any, picture: EpisodePicture, *, upto: int | Non
     handles = [_draw_trace(top, side, views, trace, upto, compact, placed) for trace in picture.traces]
     if not compact and handles:
         top.legend(handles=handles, fontsize=7, loc="upper left", framealpha=0.85)
-        top.figure.supxlabel(_action_legend(picture.scenario), fontsize=7)
+        top.figure.supxlabel(action_legend(picture.scenario), fontsize=7)
     elif compact:
         side.annotate(_outcomes(picture.traces), (0.01, 0.97), xycoords="axes fraction", fontsize=6,
-                      va="top", color="0.25")
+                      va="top", color="0.25", zorder=8,
+                      bbox={"boxstyle": "round,pad=0.15", "facecolor": "white", "alpha": 0.8, "linewidth": 0})
 
 
 def _draw_workspace(top: Any, side: Any, views: _Views, low: Sequence[float], high: Sequence[float]) -> None:
@@ -419,7 +422,7 @@ def _action_names(frame: str, swapped: bool) -> str:
     return ", ".join(f"{code} {names[_SWAPPED.get(code, code) if swapped else code]}" for code in range(len(names)))
 
 
-def _action_legend(scenario: Scenario) -> str:
+def action_legend(scenario: Scenario) -> str:
     """`actions (world frame): 0 east, 1 west, ...` plus drones whose 0/1 and 2/3 are swapped."""
     action = scenario.task.action
     text = f"actions ({action.frame} frame): {_action_names(action.frame, False)}"
