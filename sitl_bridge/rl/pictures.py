@@ -57,9 +57,9 @@ class EpisodePicture:
 
 def draw_episode(scenario: Scenario, layout: Layout, traces: Sequence[Trace], out: str | Path, *,
                  movers: dict[str, list[list[float]]] | None = None, title: str = "",
-                 fps: float = 4.0, dpi: int = 110) -> Path:
+                 fps: float = 4.0, dpi: int | None = None) -> Path:
     """Draw one episode to `out`: `.png` (top and side view) or `.gif` (the same, animated one
-    frame per action step at `fps`). Returns the path written."""
+    frame per action step at `fps`). `dpi` defaults to 110 (PNG) or 80 (GIF). Returns the path."""
     out = Path(out)
     _check_format(out)
     picture = EpisodePicture(scenario, layout, list(traces), dict(movers or {}), title)
@@ -67,9 +67,9 @@ def draw_episode(scenario: Scenario, layout: Layout, traces: Sequence[Trace], ou
     try:
         if out.suffix.lower() == ".png":
             _draw_views(top, side, picture, upto=None)
-            fig.savefig(out, dpi=dpi)
+            fig.savefig(out, dpi=dpi or 110)
         else:
-            _animate(fig, top, side, picture, out, fps, dpi)
+            _animate(fig, top, side, picture, out, fps, dpi or 80)
     finally:
         fig.clear()
     return out
@@ -204,6 +204,12 @@ def _draw_views(top: Any, side: Any, picture: EpisodePicture, *, upto: int | Non
     """Everything of one episode on a top and a side axis; `upto`: only the first `upto` steps
     (animation frames), None: the whole episode."""
     views = _Views.of(picture)
+    _draw_static(top, side, picture, views, compact)
+    _draw_moving(top, side, picture, views, upto, compact)
+
+
+def _draw_static(top: Any, side: Any, picture: EpisodePicture, views: _Views, compact: bool) -> None:
+    """What stays put during an episode: axes, workspace, static obstacles, goals."""
     world = picture.scenario.world
     for ax in (top, side):
         ax.clear()
@@ -224,17 +230,10 @@ def _draw_views(top: Any, side: Any, picture: EpisodePicture, *, upto: int | Non
         top.set_title("top view", fontsize=9, loc="left")
         seen_from = "east" if views.along == 1 else "south"
         side.set_title(f"side view (seen from the {seen_from})", fontsize=9, loc="left")
-        if picture.title:
-            top.figure.suptitle(picture.title, fontsize=10)
-
+        top.figure.supxlabel(action_legend(picture.scenario), fontsize=7)
     _draw_workspace(top, side, views, world.workspace.min_m, world.workspace.max_m)
-    movers = {name: np.asarray(path, float) for name, path in picture.movers.items() if len(path)}
     for placement in picture.layout.obstacles:
-        if placement.name in movers:
-            path = movers[placement.name]
-            now = path[min(len(path) - 1, upto if upto is not None else len(path) - 1)]
-            _draw_mover(top, side, views, placement, path, now)
-        else:
+        if placement.name not in picture.movers:
             _draw_obstacle(top, side, views, placement, placement.position_m)
     for goal in picture.layout.goals:
         _draw_box(top, side, views, goal.center_m, goal.size_m, face=(0.2, 0.7, 0.3, 0.18),
@@ -245,11 +244,22 @@ def _draw_views(top: Any, side: Any, picture: EpisodePicture, *, upto: int | Non
         top.annotate(goal.name, (goal.center_m[a] - goal.size_m[a] / 2, upper), xytext=(2, -2),
                      textcoords="offset points", fontsize=fontsize - 1, color=(0.1, 0.45, 0.2),
                      ha="left", va="top", zorder=2.9)
+
+
+def _draw_moving(top: Any, side: Any, picture: EpisodePicture, views: _Views, upto: int | None,
+                 compact: bool) -> None:
+    """What moves: movers and drones (as far as step `upto`), their legend and the title."""
+    if not compact and picture.title:
+        top.figure.suptitle(picture.title, fontsize=10)
+    for placement in picture.layout.obstacles:
+        path = np.asarray(picture.movers.get(placement.name, []), float)
+        if len(path):
+            now = path[min(len(path) - 1, upto if upto is not None else len(path) - 1)]
+            _draw_mover(top, side, views, placement, path, now)
     placed: tuple[list, list] = ([], [])  # action labels so far, top and side view
     handles = [_draw_trace(top, side, views, trace, upto, compact, placed) for trace in picture.traces]
     if not compact and handles:
         top.legend(handles=handles, fontsize=7, loc="upper left", framealpha=0.85)
-        top.figure.supxlabel(action_legend(picture.scenario), fontsize=7)
     elif compact:
         side.annotate(_outcomes(picture.traces), (0.01, 0.97), xycoords="axes fraction", fontsize=6,
                       va="top", color="0.25", zorder=8,
@@ -436,18 +446,50 @@ def _outcomes(traces: Sequence[Trace]) -> str:
 
 
 def _animate(fig: Any, top: Any, side: Any, picture: EpisodePicture, out: Path, fps: float, dpi: int) -> None:
-    """One frame per action step (the last one held a second), written with Pillow."""
-    from matplotlib.animation import PillowWriter
+    """One frame per action step (the last one held a second longer), written with Pillow. The
+    world is drawn once as a background (in the layout of the fullest frame); each frame blits
+    only what moves onto it."""
+    from PIL import Image
 
     steps = max((len(t.positions_enu_m) for t in picture.traces), default=1)
     steps = max(steps, *(len(p) for p in picture.movers.values())) if picture.movers else steps
-    writer = PillowWriter(fps=fps)
+    views = _Views.of(picture)
     base = picture.title
-    with writer.saving(fig, str(out), dpi):
+    fig.set_dpi(dpi)
+    _draw_static(top, side, picture, views, compact=False)
+    kept = {ax: set(ax.get_children()) for ax in (top, side)}
+
+    def moving(k: int) -> list[Any]:
+        """Step k's moving artists (the previous step's removed), lowest first."""
+        for ax, static in kept.items():
+            for artist in [a for a in ax.get_children() if a not in static]:
+                artist.remove()
+        picture.title = f"{base}  (step {k} of {steps - 1})" if base else f"step {k} of {steps - 1}"
+        _draw_moving(top, side, picture, views, k, compact=False)
+        new = [a for ax, static in kept.items() for a in ax.get_children() if a not in static]
+        return sorted(new, key=lambda a: a.get_zorder())
+
+    try:
+        moving(steps - 1)
+        fig.canvas.draw()  # the constrained layout, settled with the legend and every label
+        fig.set_layout_engine("none")
+        for artist in moving(0):  # the background: the world without anything that moves
+            artist.remove()
+        fig.suptitle("")
+        fig.canvas.draw()
+        background = fig.canvas.copy_from_bbox(fig.bbox)
+        size = fig.canvas.get_width_height()
+        frames = []
         for k in range(steps):
-            picture.title = f"{base}  (step {k} of {steps - 1})" if base else f"step {k} of {steps - 1}"
-            _draw_views(top, side, picture, upto=k)
-            writer.grab_frame()
-        for _ in range(max(1, int(round(fps)))):  # hold the end
-            writer.grab_frame()
-    picture.title = base
+            artists = moving(k)
+            title = fig.suptitle(picture.title, fontsize=10)
+            fig.canvas.restore_region(background)
+            for artist in artists:
+                fig.draw_artist(artist)
+            fig.draw_artist(title)
+            frames.append(Image.frombuffer("RGBA", size, bytes(fig.canvas.buffer_rgba())).convert("RGB"))
+    finally:
+        picture.title = base
+    step_ms = int(round(1000.0 / fps))
+    durations = [step_ms] * (len(frames) - 1) + [step_ms + 1000]
+    frames[0].save(out, format="GIF", save_all=True, append_images=frames[1:], duration=durations, loop=0)

@@ -28,7 +28,7 @@ from sitl_bridge.rl.episode_log import read_records
 from sitl_bridge.rl.pictures import EpisodePicture
 from sitl_bridge.rl.rollout import Trace, eval_seeds
 from sitl_bridge.rl.rules import run_length
-from sitl_bridge.rl.run_dir import EPISODES_FILE, run_dir_of, run_scenario
+from sitl_bridge.rl.run_dir import EPISODES_FILE, read_run_files, run_dir_of, run_scenario
 
 Chooser = Callable[[int, int, np.ndarray], "int | None"]
 """(drone, step, observation) -> action; None: no action left for this drone (stop flying)."""
@@ -152,6 +152,9 @@ def refly_logged(run_dir: str | Path, episode: int, *, autopilot: str = "direct"
     finally:
         env.close()
     differences = compare(records, picture.traces)
+    trained_with = read_run_files(run_dir_of(run_dir) or run_dir)[0].autopilot
+    if differences and trained_with != autopilot:
+        differences.append(f"the run trained with the {trained_with} backend, re-flown with {autopilot}")
     picture.title = (f"{scenario.name}: training episode {episode} (reset seed {seed}, "
                      f"epsilon {float(records[0].get('epsilon', 0.0)):.2f})"
                      + ("; re-flown, differs from the log" if differences else ""))
