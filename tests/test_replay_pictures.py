@@ -218,3 +218,14 @@ def test_action_names_in_the_scenarios_frame() -> None:
     relative = action_legend(load_scenario(REPO / "worlds" / "two_drones_empty_relative.yaml"))
     assert relative.startswith("actions (goal frame): 0 right, 1 left, 2 back, 3 forward")
     assert run_lengths([6, 6, 3, 7, 7, 7]) == [(0, 6, 2), (2, 3, 1), (3, 7, 3)]
+
+
+def test_two_drone_episode_flies_again_with_both_drones(tmp_path: Path) -> None:
+    world = str(REPO / "worlds" / "two_drones_empty_relative.yaml")
+    assert cli("train", world, "--episodes", "1", "--seed", "2", "--out", str(tmp_path), *TINY) == 0
+    (folder,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    picture, differences = refly_logged(folder, 0)
+    assert differences == []
+    records = read_records(folder / "episodes.jsonl")
+    assert [t.actions for t in picture.traces] == [r["actions"] for r in records]
+    assert [t.drone for t in picture.traces] == [0, 1]
