@@ -31,6 +31,7 @@ COMMAND_MODULES = (
     "plot",
     "rules",
     "distill",
+    "replay",
 )
 
 
