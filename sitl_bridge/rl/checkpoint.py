@@ -24,6 +24,9 @@ from sitl_bridge.rl.atomic import atomic_write_bytes, fsync_dir
 
 FORMAT = "sitl_bridge.checkpoint/1"
 CHECKPOINT_DIR = "checkpoints"
+BEST_CHECKPOINT = "best.safetensors"
+"""`checkpoints/best.safetensors`: a copy of the checkpoint whose greedy evaluation was the best
+of the run (never pruned, never picked by resume, which reads `ckpt_*` only)."""
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
@@ -158,6 +161,13 @@ def restore_newest(directory: str | Path,
             warn(f"checkpoint {path.name} is unusable: {exc}; moved to {moved.name}, "
                  "falling back to the previous checkpoint")
     raise CheckpointError(f"{directory}: no usable checkpoint ({'; '.join(problems)})")
+
+
+def best_checkpoint(run_dir: str | Path) -> Path:
+    """The run's best checkpoint (`checkpoints/best.safetensors`) when the trainer kept one, else
+    the run directory itself (its newest valid checkpoint, as `resolve_checkpoint` reads it)."""
+    best = Path(run_dir) / CHECKPOINT_DIR / BEST_CHECKPOINT
+    return best if best.is_file() else Path(run_dir)
 
 
 def resolve_checkpoint(path: str | Path) -> tuple[Path, dict[str, torch.Tensor], dict[str, Any]]:

@@ -34,7 +34,7 @@ import torch
 
 from sitl_bridge.rl import checkpoint as ckpt
 from sitl_bridge.rl import run_dir as rd
-from sitl_bridge.rl.atomic import append_durably, atomic_write_json
+from sitl_bridge.rl.atomic import append_durably, atomic_write_bytes, atomic_write_json
 from sitl_bridge.rl.config import TrainConfig
 from sitl_bridge.rl.dqn import DQNAgent, NetworkShape, epsilon_at, learning_rate_at
 from sitl_bridge.rl.drones_env import (
@@ -366,10 +366,26 @@ class Trainer:
                   "wall_time_s": time.perf_counter() - start}
         atomic_write_json(self.run_dir / rd.EVAL_FILE, record)
         append_durably(self.run_dir / rd.EVALS_FILE, (json.dumps(record) + "\n").encode())
+        self._keep_if_best(result)
         if self._writer is not None:
             self._writer.evaluation(self.episode - 1, result)
         self.last_eval = result
         return result
+
+    def _keep_if_best(self, result: EvalResult) -> None:
+        """Copy the checkpoint of the current state to `checkpoints/best.safetensors` when this
+        greedy evaluation is the best of the run so far (a tie goes to the later, longer-trained
+        network); `best.json` records its success rate and episode."""
+        current = ckpt.checkpoint_path(self.checkpoint_dir, self.episode)
+        if not current.is_file():  # evaluated before the state was checkpointed: nothing to keep
+            return
+        best_path = self.run_dir / rd.BEST_FILE
+        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+            if result.success_rate < float(json.loads(best_path.read_text())["success_rate"]):
+                return
+        atomic_write_bytes(self.checkpoint_dir / ckpt.BEST_CHECKPOINT, current.read_bytes())
+        atomic_write_json(best_path, {"success_rate": result.success_rate, "after_episodes": self.episode,
+                                      "copied_from": current.name})
 
     def success_rate(self) -> float:
         return float(np.mean(self.recent_success)) if self.recent_success else 0.0
