@@ -13,6 +13,7 @@ An experiment file (`experiments/thesis.yaml`)::
           thesis: {shorthand: ER, result: "stable", source: "thesis Table 3"}   # shown beside ours
       comparisons:                    # with vs without the earlier network, same seeds
         - curriculum: ../worlds/curricula/er_te.yaml
+          thesis: {result: "about as many episodes with as without", source: "thesis 7.2"}
 
 World and curriculum paths are relative to the current directory, or else to the experiment
 file. A comparison's curriculum names scenarios of the list in order; its first stage's runs are
@@ -35,6 +36,7 @@ newest checkpoint and starts the rest (the sweep's own rules).
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -76,6 +78,7 @@ class ComparisonSpec:
     stage_overrides: tuple[dict[str, Any], ...]
     """Each stage's own `train:` overrides (applied after the scenario's)."""
     curriculum: str
+    thesis: dict[str, str] = field(default_factory=dict)
 
     @property
     def target(self) -> str:
@@ -121,7 +124,7 @@ def load_experiment(path: str | Path) -> Experiment:
     by_world = {s.world: s.stem for s in scenarios}
     comparisons: list[ComparisonSpec] = []
     for item in node.get("comparisons", []).list():
-        item.reject_unknown({"curriculum"})
+        item.reject_unknown({"curriculum", "thesis"})
         file_node = item.get("curriculum")
         file = _existing(file_node, base)
         curriculum = load_curriculum(file)  # checks that every stage's network fits the next
@@ -135,7 +138,8 @@ def load_experiment(path: str | Path) -> Experiment:
         if len(stems) < 2 or any(c.name == curriculum.name for c in comparisons):
             raise file_node.error("a curriculum of at least two stages, with a name no other comparison has")
         comparisons.append(ComparisonSpec(curriculum.name, tuple(stems),
-                                          tuple(dict(s.overrides) for s in curriculum.stages), file))
+                                          tuple(dict(s.overrides) for s in curriculum.stages), file,
+                                          _thesis(item.get("thesis", {}))))
     return Experiment(
         name=node.get("name", Path(path).stem).string(),
         source=str(path),
@@ -165,7 +169,7 @@ def _thesis(node: Node) -> dict[str, str]:
 def _existing(node: Node, base: Path) -> str:
     for candidate in (Path(node.string()), base / node.string()):
         if candidate.is_file():
-            return str(candidate)
+            return os.path.normpath(candidate)
     raise node.error("an existing file (relative to the current directory or to this file)")
 
 
@@ -235,6 +239,8 @@ def run_experiment(experiment: Experiment, out: str | Path, *, workers: int = 1,
             return []
         if backend == "ray":
             return sweep.run_ray(jobs, address, on_result=on_result)
+        if workers == 1:
+            return sweep.run_serial(jobs, on_result=on_result)
         return sweep.run_local(jobs, workers, on_result=on_result)
 
     jobs = []
@@ -301,5 +307,7 @@ def _transfer_jobs(experiment: Experiment, out: Path, comparison: ComparisonSpec
             continue
         (job,) = sweep.plan(scenario.world, [seed], [(scenario.stem, overrides)],
                             transfer_root(out, comparison.name), autopilot=experiment.autopilot)
-        jobs.append(dataclasses.replace(job, init_from=str(best_checkpoint(source))))
+        # the point names the comparison (the sweep's summary rows), the folder stays stage_folder's
+        jobs.append(dataclasses.replace(job, point=f"{comparison.name}/{scenario.stem}",
+                                        init_from=str(best_checkpoint(source))))
     return jobs

@@ -170,8 +170,8 @@ def _transfer_section(results: dict[str, Any]) -> list[str]:
               + "; effect size: rank-biserial correlation P(with > without) - P(with < without), negative "
               "when the transfer runs needed fewer episodes.", "",
               "| comparison | seeds with / without | success with | success without | reached 90 % with / without "
-              "| episodes to 90 % median with / without | U | p | effect size | answer |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              "| episodes to 90 % median with / without | U | p | effect size | answer | thesis |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, c in transfer.items():
         w, wo = c["with"], c["without"]
         lines.append(
@@ -179,12 +179,19 @@ def _transfer_section(results: dict[str, Any]) -> list[str]:
             f"| {_pct(w['success_mean'])}{_ci(w['success_ci95'])} | {_pct(wo['success_mean'])}{_ci(wo['success_ci95'])} "
             f"| {w['reached_90']} / {wo['reached_90']} | {_num(w['episodes_to_90_median'])} / "
             f"{_num(wo['episodes_to_90_median'])} | {_num(c['u'], 1)} | {_p(c['p_value'])} "
-            f"| {_num(c['effect_size'], 2)} | {_answer(c)} |")
+            f"| {_num(c['effect_size'], 2)} | {_answer(c)} | {_cell(_thesis_note(c.get('thesis') or {}))} |")
     lines.append("")
     for name, c in transfer.items():
         figures = [f"[{c[k]}]({c[k]})" for k in ("figure", "figure_with_runs") if c.get(k)]
         lines.append(f"- {name}: " + (", ".join(figures) if figures else "no figure (no finished runs)"))
     return lines + [""]
+
+
+def _thesis_note(thesis: dict[str, str]) -> str:
+    if not thesis:
+        return "-"
+    text = thesis.get("result", "-") + (f" ({thesis['runs']} runs)" if thesis.get("runs") else "")
+    return text + (f"; {thesis['source']}" if thesis.get("source") else "")
 
 
 def _answer(c: dict[str, Any]) -> str:

@@ -273,7 +273,8 @@ def _comparison(comparison: ComparisonSpec, results: dict[str, Any],
     with_summary = {**summarize_seeds(with_seeds), "unfinished": missing}
     without_summary = {k: v for k, v in without.items() if k not in ("world", "thesis")}
     return {"stages": list(comparison.stems), "from": comparison.stems[-2], "to": comparison.target,
-            "curriculum": comparison.curriculum, "with": with_summary, "without": without_summary,
+            "curriculum": comparison.curriculum, "thesis": comparison.thesis,
+            "with": with_summary, "without": without_summary,
             **compare(with_seeds, without["seeds"])}
 
 

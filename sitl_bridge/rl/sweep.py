@@ -272,6 +272,16 @@ def run_local(jobs: list[SweepJob], workers: int,
     return [results[job.index] for job in jobs]
 
 
+def run_serial(jobs: list[SweepJob], on_result: Callable[[SweepResult], None] | None = None) -> list[SweepResult]:
+    """Run `jobs` one after another in this process (one worker: no process to start)."""
+    results = []
+    for job in jobs:
+        results.append(run_job(job, job.instance_base))
+        if on_result is not None:
+            on_result(results[-1])
+    return results
+
+
 # -- Ray ------------------------------------------------------------------------------------
 def run_ray(jobs: list[SweepJob], address: str | None = None, num_cpus_per_run: float = 1.0,
             on_result: Callable[[SweepResult], None] | None = None) -> list[SweepResult]:
