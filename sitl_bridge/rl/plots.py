@@ -255,7 +255,8 @@ def plot_greedy_groups(groups: dict[str, Sequence[str | Path]], out: str | Path,
             continue
         grid, curves = held_evaluations(evals)
         mean, low, high = mean_and_band(curves)
-        ax.plot(grid, mean, color=f"C{i}", marker="o", ms=3, label=f"{label} ({len(evals)} runs)")
+        ax.plot(grid, mean, color=f"C{i}", marker="os^D"[i % 4], ms=4, ls=("-", "--", ":", "-.")[i % 4],
+                label=f"{label} ({len(evals)} runs)")  # distinct marks: equal curves stay visible
         if len(evals) > 1:
             ax.fill_between(grid, low, high, color=f"C{i}", alpha=0.2, lw=0)
     ax.set_ylim(-0.02, 1.02)
