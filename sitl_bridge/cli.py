@@ -28,6 +28,7 @@ COMMAND_MODULES = (
     "transfer",
     "lr_probe",
     "curriculum",
+    "experiment",
     "plot",
     "rules",
     "distill",

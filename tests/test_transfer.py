@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from conftest import pick_free_instances
 
-from sitl_bridge.commands.transfer import wilson_interval
+from sitl_bridge.rl.stats import wilson_interval
 
 WORLD = str(Path(__file__).resolve().parent.parent / "worlds" / "empty.yaml")
 

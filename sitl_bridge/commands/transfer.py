@@ -12,26 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
 from sitl_bridge.autopilot import registry
 from sitl_bridge.errors import ConfigError
-
-Z95 = 1.959964
-"""Standard normal quantile of a two-sided 95 % interval."""
-
-
-def wilson_interval(successes: int, trials: int, z: float = Z95) -> tuple[float, float]:
-    """Wilson score interval of a proportion (sound at 0 and n, unlike the normal one)."""
-    if trials == 0:
-        return 0.0, 1.0
-    p = successes / trials
-    denominator = 1 + z * z / trials
-    centre = (p + z * z / (2 * trials)) / denominator
-    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denominator
-    return max(0.0, centre - half), min(1.0, centre + half)
+from sitl_bridge.rl.stats import wilson_interval
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -163,6 +163,13 @@ def restore_newest(directory: str | Path,
     raise CheckpointError(f"{directory}: no usable checkpoint ({'; '.join(problems)})")
 
 
+def best_checkpoint(run_dir: str | Path) -> Path:
+    """The run's best checkpoint (`best.safetensors`) when the trainer kept one, else the run
+    directory itself (its newest valid checkpoint, as `resolve_checkpoint` reads it)."""
+    best = Path(run_dir) / BEST_CHECKPOINT
+    return best if best.is_file() else Path(run_dir)
+
+
 def resolve_checkpoint(path: str | Path, *, latest: bool = False) -> tuple[Path, dict[str, torch.Tensor], dict[str, Any]]:
     """A checkpoint file, or a run directory's result: its best greedy checkpoint
     (`best.safetensors`) when it has a sound one and `latest` is False, else the newest valid

@@ -52,12 +52,14 @@ class Curriculum:
     source: str
 
 
-def _world_path(node: Node, base: Path) -> str:
+def world_path(node: Node, base: Path) -> str:
+    """The scenario file a config names, relative to the current directory or else to `base`
+    (the folder of the file naming it)."""
     text = node.string()
     for candidate in (Path(text), base / text):
         if candidate.is_file():
             return os.path.normpath(candidate)
-    raise node.error("an existing scenario file (relative to the current directory or the curriculum file)")
+    raise node.error("an existing scenario file (relative to the current directory or to this file)")
 
 
 def load_curriculum(path: str | Path) -> Curriculum:
@@ -69,7 +71,7 @@ def load_curriculum(path: str | Path) -> Curriculum:
     stages: list[Stage] = []
     for item in node.get("stages").list(min_len=1):
         item.reject_unknown({"world", "train"})
-        world = _world_path(item.get("world"), Path(path).parent)
+        world = world_path(item.get("world"), Path(path).parent)
         train = item.get("train", None)
         # Validate the overrides against the world's own train: section now, not after hours.
         parse_train_node(train, load_train_config(world))

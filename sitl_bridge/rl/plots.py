@@ -89,11 +89,18 @@ def eval_series(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
             np.array([e["success_rate"] for e in evals], dtype=float))
 
 
+def pad(curves: Sequence[np.ndarray]) -> np.ndarray:
+    """The curves as rows of one array as long as the longest, NaN after a curve's end."""
+    length = max(len(c) for c in curves)
+    return np.vstack([np.pad(np.asarray(c, dtype=float), (0, length - len(c)), constant_values=np.nan)
+                      for c in curves])
+
+
 def mean_and_band(curves: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean and 95 % confidence band (Student t) across runs, point by point; the curves are
-    cut to the shortest. With one run the band is the curve itself."""
-    length = min(len(c) for c in curves)
-    stacked = np.vstack([np.asarray(c[:length], dtype=float) for c in curves])
+    """Mean and 95 % confidence band (Student t) across runs, point by point, as long as the
+    longest curve: where some curves have ended (or are NaN) the others make the mean, and the
+    band is NaN (not drawn) where fewer than two remain. With one run the band is the curve."""
+    stacked = pad(curves)
     with warnings.catch_warnings():  # all-NaN columns (no loss yet) give NaN, as they should
         warnings.simplefilter("ignore", RuntimeWarning)
         mean = np.nanmean(stacked, axis=0)
@@ -104,8 +111,21 @@ def mean_and_band(curves: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray,
 
     counts = np.sum(np.isfinite(stacked), axis=0)
     sem = spread / np.sqrt(np.maximum(counts, 1))
-    half = stats.t.ppf(0.975, np.maximum(counts - 1, 1)) * sem
+    half = np.where(counts >= 2, stats.t.ppf(0.975, np.maximum(counts - 1, 1)) * sem, np.nan)
     return mean, mean - half, mean + half
+
+
+def held_evaluations(series: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Greedy-success curves of several runs on one grid (every episode count any run was
+    evaluated at): each run's latest evaluation at or before a point, NaN before its first,
+    and its last evaluation held after it ended (a run that stopped on success stays solved)."""
+    grid = np.unique(np.concatenate([x for x, _ in series]))
+    curves = []
+    for x, y in series:
+        order = np.argsort(x, kind="stable")
+        index = np.searchsorted(x[order], grid, side="right") - 1
+        curves.append(np.where(index >= 0, y[order][np.maximum(index, 0)], np.nan))
+    return grid, curves
 
 
 def _load(run_dir: Path) -> dict[str, np.ndarray]:
@@ -127,10 +147,12 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
 
     dirs = [Path(d) for d in run_dirs]
     runs = [_load(d) for d in dirs]
-    shortest = min(len(r["episode"]) for r in runs)
-    window = max(1, min(window, shortest))
-    x = runs[0]["episode"][:shortest] + 1  # episodes trained so far
+    lengths = sorted(len(r["episode"]) for r in runs)
+    shortest, longest = lengths[0], lengths[-1]
+    window = max(1, min(window, longest))
+    x = np.arange(1, longest + 1, dtype=float)  # episodes trained so far
     several = len(runs) > 1
+    ragged = shortest != longest  # runs stopped early (on success): the others carry the curves on
     smooth = f"rolling mean over {window} episode{'s' if window > 1 else ''}"
 
     def draw(ax, curves: list[np.ndarray], xs: np.ndarray, colour: str, label: str, **style) -> None:
@@ -144,8 +166,11 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     ax = axes[0, 0]
     evals = [eval_series(d) for d in dirs]
     if all(len(e[0]) for e in evals):
-        draw(ax, [e[1] for e in evals], evals[0][0], "k", "greedy success" + (" (mean, 95 % band)" if several else ""),
-             marker="o", ms=3)
+        grid, curves = held_evaluations(evals)
+        label = "greedy success" + (" (mean, 95 % band)" if several else "")
+        if several and ragged:
+            label += "; a run that ended holds its last evaluation"
+        draw(ax, curves, grid, "k", label, marker="o", ms=3)
     else:
         ax.text(0.5, 0.5, "no greedy evaluations logged\n(train: eval_every)", ha="center", va="center",
                 transform=ax.transAxes, color="0.4")
@@ -160,19 +185,20 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     ax.legend(loc="lower right", fontsize=8)
 
     ax = axes[0, 1]
-    shares = {o: mean_and_band([rolling_mean(r[o][:shortest], window) for r in runs])[0] for o in OUTCOMES}
+    shares = {o: mean_and_band([rolling_mean(r[o], window) for r in runs])[0] for o in OUTCOMES}
     ax.stackplot(x, [shares[o] for o in OUTCOMES], labels=OUTCOMES,
                  colors=[OUTCOME_COLOURS[o] for o in OUTCOMES], alpha=0.85)
     ax.set_ylim(0, 1)
     ax.set_ylabel(f"training outcome share ({smooth})")
-    ax.set_title("training episodes (with exploration)", fontsize=10)
+    ax.set_title("training episodes (with exploration)" + ("; means over the runs still training" if ragged else ""),
+                 fontsize=10)
     ax.legend(loc="center left", fontsize=8, framealpha=0.9)
 
     ax = axes[1, 0]
     terms = sorted({k for r in runs for k in r if k.startswith("term:")})
-    draw(ax, [rolling_mean(r["reward"][:shortest], window) for r in runs], x, "k", "total", lw=2)
+    draw(ax, [rolling_mean(r["reward"], window) for r in runs], x, "k", "total", lw=2)
     for i, term in enumerate(terms):
-        curves = [rolling_mean(r.get(term, np.zeros(shortest))[:shortest], window) for r in runs]
+        curves = [rolling_mean(r.get(term, np.zeros(len(r["episode"]))), window) for r in runs]
         draw(ax, curves, x, f"C{i % 10}", term.split(":", 1)[1])
     ax.set_ylabel(f"reward per episode ({smooth})")
     ax.set_xlabel("episodes trained")
@@ -182,12 +208,12 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     ax.legend(loc="upper left", fontsize=7, ncol=4, framealpha=0.9)
 
     ax = axes[1, 1]
-    draw(ax, [r["epsilon"][:shortest] for r in runs], x, "C1", "epsilon (exploration)")
+    draw(ax, [r["epsilon"] for r in runs], x, "C1", "epsilon (exploration)")
     ax.set_ylim(0, 1.02)
     ax.set_ylabel("epsilon (probability of a random action)")
     ax.set_xlabel("episodes trained")
     loss_ax = ax.twinx()
-    losses = [rolling_mean(r["loss"][:shortest], window) for r in runs]
+    losses = [rolling_mean(r["loss"], window) for r in runs]
     if any(np.any(np.isfinite(c) & (c > 0)) for c in losses):
         # On a log axis the band is taken over log10(loss): a geometric mean and band.
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -205,12 +231,46 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
 
     title = dirs[0].name if not several else f"{len(dirs)} runs: " + ", ".join(d.name for d in dirs[:4]) + \
         (" ..." if len(dirs) > 4 else "")
-    fig.suptitle(title + f"  ({shortest} episodes)", fontsize=10)
+    fig.suptitle(title + (f"  ({shortest}-{longest} episodes)" if ragged else f"  ({longest} episodes)"), fontsize=10)
     fig.tight_layout()
     out = Path(out) if out else dirs[0] / "learning_curves.png"
     fig.savefig(out, dpi=100)
     plt.close(fig)
     return out
+
+
+def plot_greedy_groups(groups: dict[str, Sequence[str | Path]], out: str | Path, title: str = "") -> Path:
+    """One panel: the greedy success of each group of runs (e.g. with and without a transferred
+    network) over episodes trained, mean and 95 % band across each group's runs; a run that
+    ended holds its last evaluation. Writes a PNG to `out`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for i, (label, run_dirs) in enumerate(groups.items()):
+        evals = [s for s in (eval_series(Path(d)) for d in run_dirs) if len(s[0])]
+        if not evals:
+            continue
+        grid, curves = held_evaluations(evals)
+        mean, low, high = mean_and_band(curves)
+        ax.plot(grid, mean, color=f"C{i}", marker="os^D"[i % 4], ms=4, ls=("-", "--", ":", "-.")[i % 4],
+                label=f"{label} ({len(evals)} runs)")  # distinct marks: equal curves stay visible
+        if len(evals) > 1:
+            ax.fill_between(grid, low, high, color=f"C{i}", alpha=0.2, lw=0)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("episodes trained (in this scenario)")
+    ax.set_ylabel("greedy success rate (share of drone-episodes)")
+    ax.set_title(title or "greedy evaluation during training", fontsize=10)
+    ax.grid(alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="lower right", fontsize=8, title="mean, 95 % band; ended runs hold their last value",
+                  title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return Path(out)
 
 
 def plot_run(run_dir: str | Path, out: str | Path | None = None, window: int = 50) -> Path:

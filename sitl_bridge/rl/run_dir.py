@@ -6,7 +6,8 @@
                         resume, eval, rules, plot and `run --policy` from any working directory
     config.yaml         the resolved hyperparameters (TrainConfig)
     episodes.jsonl      the episode log (one record per drone per episode)
-    checkpoints/        ckpt_0000042.safetensors ... (newest few kept)
+    checkpoints/        ckpt_0000042.safetensors ... (newest few kept); best.safetensors: a copy
+                        of the one whose greedy evaluation was the best (best.json says which)
     replay/             append-only replay shards + format.json
     tb/                 TensorBoard events
     eval.json           the latest greedy evaluation (evals.jsonl: all of them, during training too)

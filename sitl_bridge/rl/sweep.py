@@ -58,6 +58,9 @@ class SweepJob:
     watchdog: bool = False
     """Train in a `sitl-bridge train` child supervised by `rl.watchdog` (restarted from its last
     checkpoint when it dies or freezes); `direct` only, where no ports are involved."""
+    init_from: str | None = None
+    """Start the network from this run directory or checkpoint (`train --init-from`): the
+    transfer runs of an incremental-complexity comparison."""
 
 
 @dataclass
@@ -183,12 +186,15 @@ def _train(job: SweepJob, instance: int) -> SweepResult:
                                  progress=job.progress)
     else:
         config = load_train_config(job.world, job.overrides)
-        spec = RunSpec(world=job.world, autopilot=job.autopilot, seed=job.seed)
+        spec = RunSpec(world=job.world, autopilot=job.autopilot, seed=job.seed, init_from=job.init_from)
         trainer = Trainer.start(job_dir, spec, config, factory, progress=job.progress)
     with trainer:
         outcome = trainer.train()
         greedy = trainer.last_eval.success_rate if trainer.last_eval is not None else None
-        if outcome.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0 and greedy is None:
+        # As `train` does: the network at the end of the budget is evaluated (periodic
+        # evaluations stop before the last episode); one that stopped early was just evaluated.
+        if (outcome.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0
+                and not trainer.stopped_early):
             greedy = trainer.evaluate().success_rate
     return SweepResult(job.point, job.seed, "done", str(outcome.run_dir), outcome.episodes,
                        outcome.global_step, outcome.success_rate, greedy)
@@ -208,6 +214,8 @@ def _train_supervised(job: SweepJob) -> SweepResult:
         argv = ["--resume", str(started[-1]), *([] if episodes is None else ["--episodes", str(episodes)])]
     else:
         argv = [job.world, "--seed", str(job.seed), "--out", str(job_dir), "--autopilot", job.autopilot]
+        if job.init_from:
+            argv += ["--init-from", job.init_from]
         for name, value in job.overrides.items():
             flag = "--" + name.replace("_", "-")
             argv += [flag if value else "--no-" + flag[2:]] if isinstance(value, bool) else [flag, str(value)]
@@ -262,6 +270,16 @@ def run_local(jobs: list[SweepJob], workers: int,
             if on_result is not None:
                 on_result(result)
     return [results[job.index] for job in jobs]
+
+
+def run_serial(jobs: list[SweepJob], on_result: Callable[[SweepResult], None] | None = None) -> list[SweepResult]:
+    """Run `jobs` one after another in this process (one worker: no process to start)."""
+    results = []
+    for job in jobs:
+        results.append(run_job(job, job.instance_base))
+        if on_result is not None:
+            on_result(results[-1])
+    return results
 
 
 # -- Ray ------------------------------------------------------------------------------------

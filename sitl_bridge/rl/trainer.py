@@ -317,7 +317,6 @@ class Trainer:
                 if (self.config.eval_every and self.config.eval_episodes
                         and self.episode % self.config.eval_every == 0 and self.episode < self.config.episodes):
                     result = self.evaluate()
-                    self._keep_if_best(result)
                     baseline = self.constant_baseline()  # measured once per run, then read back
                     bar.update(0, greedy=f"{result.success_rate:.0%}", constant_best=f"{baseline.success_rate:.0%}")
                     if self.solved(result):
@@ -367,6 +366,7 @@ class Trainer:
                   "wall_time_s": time.perf_counter() - start}
         atomic_write_json(self.run_dir / rd.EVAL_FILE, record)
         append_durably(self.run_dir / rd.EVALS_FILE, (json.dumps(record) + "\n").encode())
+        self._keep_if_best(result)
         if self._writer is not None:
             self._writer.evaluation(self.episode - 1, result)
         self.last_eval = result
@@ -377,13 +377,15 @@ class Trainer:
         every earlier evaluation's (ties: the higher mean reward). Later training may forget
         what was learned (the thesis's OR collapsed after solving it); the best stays the
         run's result. Resumes compare against `best.json`."""
+        source = ckpt.checkpoint_path(self.checkpoint_dir, self.episode)
+        if not source.is_file():  # evaluated before the state was checkpointed: nothing to keep
+            return
         best_file = self.run_dir / rd.BEST_FILE
         score = (result.success_rate, result.mean_reward)
         with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
             best = json.loads(best_file.read_text())
             if score <= (best["success_rate"], best["mean_reward"]):
                 return
-        source = ckpt.checkpoint_path(self.checkpoint_dir, self.episode)
         atomic_write_bytes(self.run_dir / ckpt.BEST_CHECKPOINT, source.read_bytes())
         atomic_write_json(best_file, {**result.to_dict(), "after_episodes": self.episode,
                                       "global_step": self.global_step, "checkpoint": source.name})
