@@ -48,6 +48,12 @@ class EpisodeStart:
     """Zero-velocity offboard hover before an episode's first action."""
     timeout_s: float = 30.0
     """The episode start may take this long before the backend gives up."""
+    in_air_stop_speed_m_s: float = 0.1
+    """A reset in the air (kinds that fly on, `px4`) teleports only vehicles this slow ..."""
+    in_air_stop_check_s: float = 0.2
+    """... checked this often under a zero velocity setpoint after the episode's end ..."""
+    in_air_stop_timeout_s: float = 3.0
+    """... for at most this long (then the autopilots restart instead)."""
 
 
 EPISODE_START = EpisodeStart()
