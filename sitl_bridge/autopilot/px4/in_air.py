@@ -25,8 +25,8 @@ from sitl_bridge.physics.state import VehicleState
 class InAirLimits:
     """How clean the flight must be (truth, and PX4's estimate against the measured state)."""
 
-    min_height_m: float = 0.5
-    """Above the ground (truth): lower is a touchdown or a crash."""
+    min_height_m: float = 0.3
+    """Above the ground (truth, the body centre): lower is a touchdown or a crash."""
     max_speed_m_s: float = 0.3
     max_tilt_deg: float = 10.0
     max_rate_rad_s: float = 0.5
