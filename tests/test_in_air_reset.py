@@ -82,17 +82,6 @@ def test_continuous_reset_hides_the_teleport_from_the_sensors(free_instance):
 
 
 # -- with a real PX4 ------------------------------------------------------------------------------
-def _px4_instance() -> int:
-    from conftest import instance_ports_free
-
-    from sitl_bridge.autopilot.px4 import px4_server_running
-
-    for instance in range(9, 0, -1):
-        if instance_ports_free(instance) and not px4_server_running(instance):
-            return instance
-    pytest.skip("no free PX4 instance below 10")
-
-
 def _first_second(backend) -> np.ndarray:
     """Rows every 0.1 s of the first second under 1 m/s north: position from the episode's
     start (m), velocity (m/s), roll/pitch/yaw (deg); the truth."""
@@ -125,7 +114,8 @@ def test_px4_flies_on_into_the_next_episode_with_nothing_leaking(px4_bin):
     from sitl_bridge.envs.options import EnvOptions
 
     world = load_world(WORLDS / "empty.yaml")
-    options = EnvOptions.of(autopilot="px4", px4_bin=px4_bin, speed_factor=0.0, instance_base=_px4_instance())
+    # the fleet claims its instance (0, or the first free one: `autopilot.px4.allocation`)
+    options = EnvOptions.of(autopilot="px4", px4_bin=px4_bin, speed_factor=0.0)
     backend = SessionBackend(world, options, start_altitude_m=2.5)
     try:
         backend.reset(0)  # cold start: boot, arm, takeoff, offboard
