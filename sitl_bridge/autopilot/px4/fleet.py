@@ -320,6 +320,8 @@ class Px4SitlFleet(AutopilotFleet):
             return self._fleet().in_air_refusal(lockstep)
         except HilError as exc:
             raise self.explain(exc) from exc
+        except Px4Error as exc:  # died: the caller restarts it
+            return str(exc).splitlines()[0]
 
     def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]],
                           serve_until: ServeUntil, timeout_s: float) -> None:

@@ -46,6 +46,7 @@ from sitl_bridge.autopilot.registry import env_kind
 from sitl_bridge.client import Fleet, OffboardClientError
 from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, Snapshot
 from sitl_bridge.envs.options import EnvOptions
+from sitl_bridge.hil import HilError
 from sitl_bridge.sensors import sensor_seed
 from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.session import SessionError, SimSession
@@ -199,7 +200,7 @@ class SessionBackend:
             if refusal:
                 self.last_in_air_refusal = refusal
                 return False
-        except (SessionError, OffboardClientError) as exc:
+        except (SessionError, OffboardClientError, HilError) as exc:  # a dead autopilot: restart it
             self.last_in_air_refusal = f"{type(exc).__name__}: {exc}"
             return False
         self.last_in_air_refusal = ""
