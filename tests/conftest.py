@@ -54,3 +54,21 @@ def px4_bin() -> str:
     if not path or not os.path.isfile(path):
         pytest.skip("PX4_BIN not set to a px4_sitl_default bin/px4; real-PX4 test skipped")
     return path
+
+
+@pytest.fixture
+def px4_instance():
+    """A PX4 instance in 1..9 (own API port), claimed the way PX4 fleets claim theirs
+    (`autopilot.px4.allocation` lock files) for the whole test: a parallel run, or a test in
+    another checkout on this machine, never starts a PX4 or a MAVLink client on it meanwhile."""
+    from sitl_bridge.autopilot.px4.allocation import claim_free_instances
+    from sitl_bridge.autopilot.px4.process import Px4Error
+
+    try:
+        claim = claim_free_instances(1, first=1)
+    except Px4Error as exc:
+        pytest.skip(str(exc))
+    try:
+        yield claim.instances[0]
+    finally:
+        claim.release()

@@ -13,6 +13,8 @@ Life of a fleet inside a session (all calls from the session's controlling threa
     fleet.wait_ready(lockstep)           # run the lockstep until observed ready (if it must)
     ... fleet.check()                    # [] while healthy, else AutopilotFault per problem
     fleet.reset(lockstep, reset_sim)     # next episode: in place, or a restart
+    fleet.in_air_refusal(lockstep)       # resets_in_air kinds (px4): may the next episode
+                                         # start in the air, the autopilots flying on?
     fleet.restart(lockstep)              # a supervisor's cure for a dead/frozen autopilot
     fleet.close()
 
@@ -109,6 +111,9 @@ class AutopilotFleet(ABC):
     """`FleetConfig.ground_truth_estimate` is honoured (else it is a ConfigError)."""
     owns_autopilots: ClassVar[bool] = True
     """False: the autopilots are started by someone else (connect waits; no reset)."""
+    resets_in_air: ClassVar[bool] = False
+    """The next episode may start in the air with the autopilots flying on, not rebooted
+    (`autopilot.in_air_reset.reset_in_air`, asking `in_air_refusal` before and after)."""
 
     def __init__(self, config: FleetConfig) -> None:
         self.config = config
@@ -181,6 +186,13 @@ class AutopilotFleet(ABC):
         """Next episode, held: `reset_simulation()` (physics and sensors) and every autopilot
         rebooted. Default: a restart (`restart`); in-process kinds reboot in place."""
         self.restart(lockstep, reset_simulation)
+
+    def in_air_refusal(self, lockstep: Lockstep) -> str:
+        """Held: why the autopilots cannot fly on into the next episode ('' when they can:
+        every one armed, in offboard, no failsafe, in the air, its estimate following the
+        measured state). Kinds with `resets_in_air` answer; may advance simulated time a
+        little to observe fresh reports."""
+        return f"{type(self).__name__} does not reset in the air"
 
     @abstractmethod
     def restart(self, lockstep: Lockstep, reset_simulation: Callable[[], None] | None = None) -> None:

@@ -32,6 +32,7 @@ from typing import Any
 
 from sitl_bridge.hil.errors import LockstepTimeout
 from sitl_bridge.hil.link import HilLink
+from sitl_bridge.sensors.suite import offset_within_bounds
 from sitl_bridge.world.clock import whole_steps
 
 log = logging.getLogger(__name__)
@@ -227,18 +228,43 @@ class Lockstep:
             self._last_rtf = self._segment_rtf(now)
 
     def reset_simulation(self, seed: int | None = None,
-                         sensor_seeds: Sequence[int | None] | None = None) -> None:
+                         sensor_seeds: Sequence[int | None] | None = None, *,
+                         place: Callable[[Any], None] | None = None, continuous: bool = False) -> bool:
         """Hold, reset the simulation in place (time 0, vehicles re-spawned) and every sensor
         suite with it (their sample schedules follow simulated time). The links keep the
         autopilots' clock monotonic across the jump. Sensor suite i is re-seeded with
-        `sensor_seeds[i]` when given, else `seed + i` (None: not re-seeded)."""
+        `sensor_seeds[i]` when given, else `seed + i` (None: not re-seeded).
+
+        `place(sim)` runs after the re-spawn (e.g. teleports the vehicles into the air).
+        `continuous`: every suite's measured position offset is set so that the position it
+        reports does not jump (new offset = old offset + old position - new position): an
+        autopilot flying on these sensors sees no teleport. Returns False (offsets left at zero,
+        the simulation reset all the same) when an offset would exceed the suites' bound
+        (`sensors.suite.MAX_POSITION_OFFSET_M`); True otherwise."""
         self.hold()
+        # what each suite reports now: the true position plus its offset
+        measured = [tuple(float(p) + o for p, o in zip(self.sim.state(i).position_ned_m,
+                                                        suite.position_offset_ned_m, strict=True))
+                    for i, suite in enumerate(self.sensors)] if continuous else []
         self.sim.reset(seed)
+        if place is not None:
+            place(self.sim)
         for index, suite in enumerate(self.sensors):
             if sensor_seeds is not None:
                 suite.reset(sensor_seeds[index])
                 continue
             suite.reset(None if seed is None else seed + index)
+        if not continuous:
+            return True
+        offsets = []
+        for index, seen in enumerate(measured):
+            position = self.sim.state(index).position_ned_m
+            offsets.append(tuple(s - float(p) for s, p in zip(seen, position, strict=True)))
+        if not all(offset_within_bounds(offset) for offset in offsets):
+            return False
+        for suite, offset in zip(self.sensors, offsets, strict=True):
+            suite.position_offset_ned_m = offset
+        return True
 
     def idle(self, timeout_s: float = 0.0) -> None:
         """Without advancing time: run the pumps and read the links once, then keep doing so

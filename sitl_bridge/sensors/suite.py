@@ -5,6 +5,12 @@ Rates follow Gazebo-classic's iris: IMU and ground truth every step, magnetomete
 (sampled when at least 10 ms passed: 83 Hz at 4 ms steps, like Gazebo), barometer 50 Hz, GPS
 5 Hz. Every sensor is noisy (PX4 marks a sensor STALE when it repeats identical values). Noise
 is drawn from the seeded generator in blocks, so the per-step cost is a list lookup.
+
+Measured position offset (`position_offset_ned_m`, zero unless set): the positions the suite
+reports (GPS, barometric altitude, the ground truth sent as HIL_STATE_QUATERNION) are the true
+position plus this offset, velocities and attitude unchanged. It lets an episode reset teleport
+the vehicle while the autopilot measures a continuous flight (`Lockstep.reset_simulation(...,
+continuous=True)`); `reset()` sets it back to zero. It is bounded (`MAX_POSITION_OFFSET_M`).
 """
 
 from __future__ import annotations
@@ -36,6 +42,15 @@ from sitl_bridge.world.schema import GeoHome
 # PX4's simulated IMU FIFO stores int16 counts: clamp to its ranges (16 g, 2000 deg/s)
 ACCEL_LIMIT_M_S2 = 156.0
 GYRO_LIMIT_RAD_S = 34.9
+
+MAX_POSITION_OFFSET_M = (300.0, 20.0)
+"""Largest (horizontal, vertical) measured position offset a continuous reset may build up.
+Why bounded: the magnetic field is the home's (`magnetic_field_ned_gauss(home)`) while the
+autopilot looks up its own field model at the position it measures, so the two drift apart
+with distance (negligible within a few hundred metres of home); and a vertical offset moves
+the autopilot's idea of its height above home (and the barometric altitude it flies at) away
+from the truth, which its ground and landing logic use. Past the bound the caller restarts
+the autopilot instead (its estimator then starts again from the truth)."""
 
 
 @dataclass(frozen=True)
@@ -203,6 +218,13 @@ class _NoiseBlock:
         return row
 
 
+def offset_within_bounds(offset_ned_m: tuple[float, float, float]) -> bool:
+    """Whether a measured position offset is within `MAX_POSITION_OFFSET_M`."""
+    north, east, down = offset_ned_m
+    horizontal, vertical = MAX_POSITION_OFFSET_M
+    return math.hypot(north, east) <= horizontal and abs(down) <= vertical
+
+
 def _clamp(x: float, limit: float) -> float:
     return limit if x > limit else -limit if x < -limit else x
 
@@ -236,12 +258,27 @@ class SensorSuite:
         mag_steps = max(1, -(-self._mag_period_us // step_us))
         self._sigma_mag = n.mag_density_gauss_sqrt_hz / math.sqrt(mag_steps * step_s)
         self._seed = seed
+        self._offset_ned = (0.0, 0.0, 0.0)
         self.reset(seed)
 
+    @property
+    def position_offset_ned_m(self) -> tuple[float, float, float]:
+        """Added to the true position in every position the suite reports (see module doc)."""
+        return self._offset_ned
+
+    @position_offset_ned_m.setter
+    def position_offset_ned_m(self, offset: tuple[float, float, float]) -> None:
+        north, east, down = (float(c) for c in offset)
+        if not offset_within_bounds((north, east, down)):
+            raise ValueError(f"position offset {offset} beyond MAX_POSITION_OFFSET_M {MAX_POSITION_OFFSET_M}")
+        self._offset_ned = (north, east, down)
+
     def reset(self, seed: int | None = None) -> None:
-        """Restart the noise streams (re-seeded when `seed` is given) and the sample schedule."""
+        """Restart the noise streams (re-seeded when `seed` is given) and the sample schedule;
+        the position offset back to zero."""
         if seed is not None:
             self._seed = seed
+        self._offset_ned = (0.0, 0.0, 0.0)
         rng = np.random.default_rng(self._seed)
         self._imu_noise = _NoiseBlock(rng, 6, 2048)
         self._mag_noise = _NoiseBlock(rng, 3, 512)
@@ -278,7 +315,8 @@ class SensorSuite:
         # ground truth in PX4's frames
         q_ned_frd = quat_enu_flu_to_ned_frd_t(q_enu_flu)
         pe, pn, pd = position_enu
-        pd = -pd
+        on, oe, od = self._offset_ned  # the measured position (module docstring)
+        pn, pe, pd = pn + on, pe + oe, od - pd
         ve, vn, vd = velocity_enu
         vd = -vd
         ae, an, au = accel_enu

@@ -23,6 +23,8 @@ from sitl_bridge.autopilot.fleet import (
     link_summary,
 )
 from sitl_bridge.autopilot.px4.allocation import InstanceClaim, claim_instances, free_px4_instances
+from sitl_bridge.autopilot.px4.in_air import IN_AIR_LIMITS, InAirLimits
+from sitl_bridge.autopilot.px4.in_air import refusal as in_air_refusal
 from sitl_bridge.autopilot.px4.observer import Px4Observation
 from sitl_bridge.autopilot.px4.process import Px4Autopilot, Px4Config, Px4Died, Px4Error
 from sitl_bridge.autopilot.px4.temp_dirs import make_temp_run_dir
@@ -34,6 +36,12 @@ from sitl_bridge.ports import (
     VehiclePorts,
     vehicle_ports,
 )
+
+IN_AIR_FRESH_S = 1.0
+"""`in_air_refusal` trusts PX4's reports read within this much simulated time."""
+IN_AIR_OBSERVE_S = 0.2
+"""... else it runs this long first (PX4 streams HEARTBEAT, EXTENDED_SYS_STATE at 10 Hz and
+LOCAL_POSITION_NED at 50 Hz on the GCS link: px4_params/px4-rc.mavlink)."""
 
 
 class Px4Fleet:
@@ -48,6 +56,7 @@ class Px4Fleet:
         self.last_ready_wall_s = 0.0
         # true NED position minus PX4's local estimate, when each became ready
         self._origin_offsets: list[tuple[float, float, float] | None] = [None] * len(self.autopilots)
+        self._polled_at_step = -(2**62)  # lockstep step of the last in_air_refusal's reading
 
     def start(self) -> None:
         for autopilot in self.autopilots:
@@ -117,18 +126,42 @@ class Px4Fleet:
 
     @staticmethod
     def _offset(lockstep: Any, index: int, obs: Px4Observation) -> tuple[float, float, float]:
+        # what PX4's sensors measure: the truth plus the suite's measured position offset
         true = lockstep.sim.state(index).position_ned_m
+        shift = lockstep.sensors[index].position_offset_ned_m
         estimate = obs.position_ned_m or (0.0, 0.0, 0.0)
-        return (float(true[0]) - estimate[0], float(true[1]) - estimate[1], float(true[2]) - estimate[2])
+        return tuple(float(t) + o - e for t, o, e in zip(true, shift, estimate, strict=True))  # type: ignore[return-value]
 
     def estimate_error_m(self, lockstep: Any, index: int) -> float:
-        """Distance between PX4's position estimate and the truth (in PX4's local frame)."""
+        """Distance between PX4's position estimate and the position its sensors measure (the
+        truth plus their measured position offset, see `SensorSuite`), in PX4's local frame."""
         obs = self.autopilots[index].observation
         origin = self._origin_offsets[index]
         if obs.position_ned_m is None or origin is None:
             return float("inf")
         offset = self._offset(lockstep, index, obs)
         return math.dist(offset, origin)
+
+    def in_air_refusal(self, lockstep: Any, limits: InAirLimits = IN_AIR_LIMITS) -> str:
+        """Held: why PX4 cannot fly on into the next episode ('' when every vehicle can; see
+        `in_air`). Reports older than `IN_AIR_FRESH_S` of simulated time are not trusted (the
+        observer's socket may have overflowed while nobody read it): then the lockstep runs
+        `IN_AIR_OBSERVE_S` first for fresh ones."""
+        for autopilot in self.autopilots:
+            autopilot.poll()
+        if lockstep.stats.steps - self._polled_at_step > lockstep.steps_for_rounded(IN_AIR_FRESH_S):
+            lockstep.run_for(IN_AIR_OBSERVE_S)
+        self.check_alive()
+        self._polled_at_step = lockstep.stats.steps
+        for index, autopilot in enumerate(self.autopilots):
+            obs = autopilot.poll()
+            state = lockstep.sim.state(index)
+            velocity_error = (math.dist(obs.velocity_ned_m_s, state.velocity_ned_m_s)
+                              if obs.velocity_ned_m_s is not None else math.inf)
+            reason = in_air_refusal(obs, state, self.estimate_error_m(lockstep, index), velocity_error, limits)
+            if reason:
+                return f"vehicle {index} (PX4 instance {autopilot.instance}): {reason}"
+        return ""
 
     def reset_in_place(self, lockstep: Any, reset: Callable[[], None] | None = None, *,
                        tolerance_m: float = 0.3,
@@ -203,6 +236,7 @@ class Px4SitlFleet(AutopilotFleet):
     HEARTBEAT on its GCS link (`Px4Autopilot.poll`), read when asked."""
 
     resets_in_place = False
+    resets_in_air = True
 
     def __init__(self, config: FleetConfig) -> None:
         super().__init__(config)
@@ -280,6 +314,14 @@ class Px4SitlFleet(AutopilotFleet):
                                   connect_timeout_s=self.config.connect_timeout_s or 30.0)
         except HilError as exc:
             raise self.explain(exc) from exc
+
+    def in_air_refusal(self, lockstep: Any) -> str:
+        try:
+            return self._fleet().in_air_refusal(lockstep)
+        except HilError as exc:
+            raise self.explain(exc) from exc
+        except Px4Error as exc:  # died: the caller restarts it
+            return str(exc).splitlines()[0]
 
     def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]],
                           serve_until: ServeUntil, timeout_s: float) -> None:

@@ -1,6 +1,6 @@
 """Watching a PX4 over its GCS MAVLink port (UDP 18570+N), the way QGroundControl does:
 heartbeats out so PX4 streams to us; HEARTBEAT, SYS_STATUS, HOME_POSITION, LOCAL_POSITION_NED,
-COMMAND_ACK and PARAM_VALUE in. Parameters that must hold a value are read back and set again
+EXTENDED_SYS_STATE, COMMAND_ACK and PARAM_VALUE in. Parameters that must hold a value are read back and set again
 (PARAM_SET, PX4's bytewise int encoding) when they differ."""
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ class Px4Observation:
     heartbeat: bool = False
     armed: bool = False
     custom_mode: int = 0
+    system_status: int = 0  # HEARTBEAT.system_status: MAV_STATE (PX4: CRITICAL in a failsafe)
+    landed_state: int = 0  # EXTENDED_SYS_STATE.landed_state: MAV_LANDED_STATE (0: not reported yet)
     prearm_ok: bool = False
     home_ok: bool = False
     ready_for_takeoff_line: bool = False
@@ -134,6 +136,9 @@ class GcsObserver:
                     obs.heartbeat = True
                     obs.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                     obs.custom_mode = msg.custom_mode
+                    obs.system_status = msg.system_status
+                elif msgid == mavlink.dialect.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
+                    _vtol_state, obs.landed_state = mavlink.unpack_payload(frame)
                 elif msgid == mavlink.dialect.MAVLINK_MSG_ID_SYS_STATUS:
                     msg = mavlink.decode_frame(self._codec, frame)
                     obs.prearm_ok = bool(msg.onboard_control_sensors_health & MAV_SYS_STATUS_PREARM_CHECK)

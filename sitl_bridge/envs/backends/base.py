@@ -8,7 +8,9 @@ simulated step, so `direct` and `stub` agree on the same seed and actions:
 1. `reset(seed)`: in place (the episode clock restarts at 0), every vehicle re-spawned
    (randomised per the world, from `seed`) on the ground, autopilots rebooted (`direct`/`stub`:
    `StubAutopilot.reset`, a warm reboot with the short alignment; `px4`: restarted), sensor
-   noise re-seeded; then the episode start, observed rather than timed: arm as soon as
+   noise re-seeded (`px4` after its first episode: in the air instead, PX4 flying on, see
+   `backends.session`, then only the settle below); then the episode start, observed rather
+   than timed: arm as soon as
    the autopilot accepts (retried every `EPISODE_START.arm_poll_s`), take off to the task's
    start altitude (PX4's AUTO.TAKEOFF with MIS_TAKEOFF_ALT), wait until in the air, in HOLD
    and within `takeoff_tolerance_m` of it, switch to offboard with a zero-velocity setpoint and
@@ -48,6 +50,12 @@ class EpisodeStart:
     """Zero-velocity offboard hover before an episode's first action."""
     timeout_s: float = 30.0
     """The episode start may take this long before the backend gives up."""
+    in_air_stop_speed_m_s: float = 0.1
+    """A reset in the air (kinds that fly on, `px4`) teleports only vehicles this slow ..."""
+    in_air_stop_check_s: float = 0.2
+    """... checked this often under a zero velocity setpoint after the episode's end ..."""
+    in_air_stop_timeout_s: float = 3.0
+    """... for at most this long (then the autopilots restart instead)."""
 
 
 EPISODE_START = EpisodeStart()

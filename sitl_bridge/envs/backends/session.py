@@ -17,7 +17,15 @@ Reset between episodes, as the kind's fleet says (`AutopilotFleet.resets_in_plac
   estimator with the short warm alignment, as `direct`'s `StubAutopilot.reset`), while the
   HIL link keeps the stubs' clock counting up (their stream schedules, the lockstep's answer
   matching and MAVSDK all see monotonic time).
-* a restart (`px4`: PX4's estimator cannot be teleported, the thesis's position jump): the
+* in the air (`px4`, kinds with `AutopilotFleet.resets_in_air`): PX4 flies on, no reboot, no
+  takeoff. The episode's end is held with a zero velocity setpoint until every vehicle is slow
+  (`EPISODE_START.in_air_stop_speed_m_s`), then `autopilot.in_air_reset.reset_in_air` re-spawns the world
+  with every vehicle hovering at the start altitude, PX4's sensors measuring a continuous
+  flight (their position offset takes the jump), and settles `settle_s` under the zero
+  setpoint; observations keep reading the truth. Where PX4 is not in a clean flying state
+  (disarmed, failsafe, landed, crashed, tumbling, estimate off, offset past its bound), or
+  at the first episode, it falls back to:
+* a restart (`px4`: a cold boot is the only reset that clears all of PX4's state): the
   session is restarted, autopilot processes, links and MAVSDK clients, on the same instances.
 
 Collisions come from the session's collision log (`SimSession.take_collisions`), each
@@ -33,10 +41,13 @@ from typing import Any
 
 import numpy as np
 
+from sitl_bridge.autopilot.in_air_reset import reset_in_air
 from sitl_bridge.autopilot.registry import env_kind
 from sitl_bridge.client import Fleet, OffboardClientError
 from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, Snapshot
 from sitl_bridge.envs.options import EnvOptions
+from sitl_bridge.hil import HilError
+from sitl_bridge.sensors import sensor_seed
 from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.session import SessionError, SimSession
 from sitl_bridge.world import World
@@ -49,7 +60,13 @@ class SessionBackend:
     def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float) -> None:
         self.estimator = options.estimator
         self.name = options.autopilot
-        self.resets_in_place = env_kind(options.autopilot).fleet_class().resets_in_place
+        fleet_class = env_kind(options.autopilot).fleet_class()
+        self.resets_in_place = fleet_class.resets_in_place
+        self.resets_in_air = fleet_class.resets_in_air
+        self.in_air_resets = 0
+        """Episodes started in the air (`reset_in_air`); the others were restarts or in place."""
+        self.last_in_air_refusal = ""
+        """Why the last reset could not start in the air ('' when it did)."""
         self.world = world
         self.num_drones = world.num_vehicles
         self.start_altitude_m = float(start_altitude_m)
@@ -68,6 +85,8 @@ class SessionBackend:
     # -- Backend API --------------------------------------------------------------------
     def reset(self, seed: int | None = None) -> Snapshot:
         seed = 0 if seed is None else int(seed)
+        if self.session is not None and self.resets_in_air and self._reset_in_air(seed):
+            return self._snapshot()
         if self.session is not None and not self.resets_in_place:
             self._stop()  # e.g. PX4: restart rather than teleport its estimator
         if self.session is None:
@@ -164,6 +183,51 @@ class SessionBackend:
                       tolerance_m=start.takeoff_tolerance_m)
         fleet.start_offboard()
         session.run_for(nearest_whole_steps_s(start.settle_s, step_us))
+
+    def _reset_in_air(self, seed: int) -> bool:
+        """The next episode in the air (module docstring); False: reset another way."""
+        session, start = self._session(), EPISODE_START
+        step_us = session.step_us
+        try:
+            slow = self._stop_in_air()
+            if not slow:
+                self.last_in_air_refusal = "still moving after the stop"
+                return False
+            seeds = [sensor_seed(seed, k) for k in range(self.num_drones)]  # as SimSession.reset
+            with session.exclusive():
+                refusal = reset_in_air(session.autopilots, session.lockstep, seed, seeds, self.start_altitude_m,
+                                       nearest_whole_steps_s(start.settle_s, step_us))
+            if refusal:
+                self.last_in_air_refusal = refusal
+                return False
+        except (SessionError, OffboardClientError, HilError) as exc:  # a dead autopilot: restart it
+            self.last_in_air_refusal = f"{type(exc).__name__}: {exc}"
+            return False
+        self.last_in_air_refusal = ""
+        self.in_air_resets += 1
+        assert self.lidar is not None
+        self.lidar.reset()
+        self._episode_start_us = 0  # simulated time restarted at 0 with the re-spawn
+        session.take_collisions()  # the episode start's do not count
+        self._collided = [False] * self.num_drones
+        return True
+
+    def _stop_in_air(self) -> bool:
+        """Zero velocity setpoints, held until every vehicle is slower than
+        `in_air_stop_speed_m_s` (at most `in_air_stop_timeout_s` of simulated time)."""
+        session, fleet, start = self._session(), self._fleet(), EPISODE_START
+        chunk_s = nearest_whole_steps_s(start.in_air_stop_check_s, session.step_us)
+        fleet.fly([np.zeros(3)] * self.num_drones, chunk_s)
+        waited = chunk_s
+        while True:
+            speeds = [float(np.linalg.norm(session.vehicle_state(k).velocity_enu_m_s))
+                      for k in range(self.num_drones)]
+            if max(speeds) <= start.in_air_stop_speed_m_s:
+                return True
+            if waited >= start.in_air_stop_timeout_s:
+                return False
+            session.run_for(chunk_s)  # the zero setpoint is still streaming
+            waited += chunk_s
 
     def with_simulation(self, use):  # noqa: ANN001, ANN201 - see Backend.with_simulation
         """`use(simulation)` with the session's runner thread off the lockstep."""
