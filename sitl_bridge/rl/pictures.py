@@ -16,6 +16,7 @@ animates the drones (and movers) step by step.
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -108,7 +109,10 @@ def draw_grid(episodes: Sequence[EpisodePicture], out: str | Path, titles: Seque
             side = fig.add_subplot(grid[2 * r + 1, c], sharex=top)
             _draw_views(top, side, picture, upto=None, compact=True)
             top.set_title(title, fontsize=8)
-        fig.supxlabel(action_legend(episodes[0].scenario), fontsize=7)
+        # wrapped to the figure's width (one narrow cell would cut it off); ~18 characters per inch at 7 pt
+        width = int(18 * cell_w * columns)
+        legend = "\n".join(textwrap.fill(line, width) for line in action_legend(episodes[0].scenario).splitlines())
+        fig.supxlabel(legend, fontsize=7)
         fig.savefig(out, dpi=dpi)
     finally:
         fig.clear()
