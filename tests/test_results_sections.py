@@ -157,6 +157,7 @@ def test_a_second_report_reuses_the_flights_and_says_not_run(experiment, tmp_pat
     assert again["behaviour"]["window"]["status"] == "not run" and again["trees"]["window"]["status"] == "not run"
     assert again["behaviour"]["empty"] == results["behaviour"]["empty"]
     assert again["trees"]["random_goal"] == results["trees"]["random_goal"]
+    assert list(again["behaviour"]["random_goal"]["verification"]) == ["random_goal", "empty"]  # order kept
     text = experiment_report.render(again, json.loads((out / "experiment.json").read_text()))
     assert "| `window` | not run (no finished runs) |" in text
     assert "- `window`: not run" in text and "### `window`" in text

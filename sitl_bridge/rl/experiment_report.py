@@ -251,7 +251,9 @@ def _episodes_section(results: dict[str, Any]) -> list[str]:
 
 
 def _top(shares: dict[str, float], count: int = 3) -> str:
-    return ", ".join(f"{name} {_pct(share)}" for name, share in list(shares.items())[:count]) or "-"
+    """The `count` largest shares, largest first."""
+    ranked = sorted(shares.items(), key=lambda kv: (-kv[1], kv[0]))[:count]
+    return ", ".join(f"{name} {_pct(share)}" for name, share in ranked) or "-"
 
 
 def _behaviour_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
@@ -275,13 +277,15 @@ def _behaviour_section(results: dict[str, Any], meta: dict[str, Any]) -> list[st
         seeds = b["per_seed"]
         wins = sum(sum(r["success_counts"].values()) for r in seeds)
         total = sum(sum(r["counts"].values()) for r in seeds)
-        head = f"mostly {b['dominant']}: " if b["dominant"] else "split: "
-        majority = ", ".join(f"{k} in {v}" for k, v in b["seed_majorities"].items()) or "-"
+        head = f"mostly {b['dominant']}: " if b["dominant"] else ("split: " if b["split"] else "")
+        majorities = sorted(b["seed_majorities"].items(), key=lambda kv: (-kv[1], kv[0]))
+        majority = (", ".join(f"{k} in {v}" for k, v in majorities) + f" of {b['seeds']}"
+                    if b["seed_majorities"] else "-")
         patterns = _top(b["patterns"]) if any("+" in k for k in b["patterns"]) else "-"
         yields = b["yield_priority"]
         yielded = f"{yields['follows']} of {yields['episodes_with_yield']}" if yields["episodes_with_yield"] else "-"
         lines.append(f"| `{stem}` | {wins} / {total} | {head}{_cell(b['split_text']) or 'no success'} "
-                     f"| {_cell(majority)} of {b['seeds']} | {_cell(patterns)} | {yielded} "
+                     f"| {_cell(majority)} | {_cell(patterns)} | {yielded} "
                      f"| {_cell(_top(b['actions']))} ({b['frame']}) |")
         details += [f"<details><summary>`{stem}` per seed</summary>", "",
                     "| seed | manoeuvres (all drone-episodes) | reached the goal | majority of the successes |",
@@ -303,7 +307,8 @@ def _rules_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
     lines += ["Candidate rules from the classified episodes: the situation at the start of each manoeuvre "
               "(a condition over the scenario's observation features), the action flown there and its support "
               "(seeds in which it shows in at least half of the successful episodes; successful episodes "
-              "showing it). Rules marked YAML make the scenario's rules file (first matching rule wins); it "
+              "showing it). The rules kept *in the YAML* make the scenario's rules file (first matching rule "
+              "wins; without a supported unconditional rule it ends with the default: fly toward the goal); it "
               f"is flown as a scripted policy ({settings.get('verify_episodes', '?')} episodes, `eval --rules`) "
               "in the scenario it came from and in the simpler ones before it, beside the greedy success of "
               "the network trained in each (the report's evaluation above).", ""]

@@ -39,6 +39,8 @@ AXIS_LABELS_IN = 0.7
 """Width (inches) the y tick labels and axis name take beside a view (sizes figures to scale)."""
 LABEL_CROWD = 0.03
 """Action labels closer than this share of the travel axis' span are stacked, not overlaid."""
+MAX_STACKED = 6
+"""Labels stacked at one place at most; the next one is drawn as `...`, later ones not at all."""
 SIDE_ALPHA = 0.5
 """Obstacles' fill in the side view relative to the top view's."""
 _SWAPPED = {0: 1, 1: 0, 2: 3, 3: 2}
@@ -426,9 +428,13 @@ def _label_actions(ax: Any, project: Any, path: np.ndarray, trace: Trace, upto: 
         text = str(code) if n == 1 else f"{code}x{n}"
         crowd = sum(1 for x, y in placed if abs(x - where[0]) < near and abs(y - where[1]) < near)
         placed.append(where)
-        ax.annotate(text, where, xytext=(dx, dy - 8 * crowd), textcoords="offset points", fontsize=5 if compact else 6.5,
-                    color=color, zorder=7, fontweight="bold",
-                    bbox={"boxstyle": "round,pad=0.12", "facecolor": "white", "alpha": 0.7, "linewidth": 0})
+        if crowd > MAX_STACKED:
+            continue  # an oscillation's labels would run off the picture: the stack ends in "..."
+        label = ax.annotate("..." if crowd == MAX_STACKED else text, where, xytext=(dx, dy - 8 * crowd),
+                            textcoords="offset points", fontsize=5 if compact else 6.5, color=color, zorder=7,
+                            fontweight="bold",
+                            bbox={"boxstyle": "round,pad=0.12", "facecolor": "white", "alpha": 0.7, "linewidth": 0})
+        label.set_in_layout(False)  # a label beside the axes never resizes the figure's layout
 
 
 def _action_names(frame: str, swapped: bool) -> str:

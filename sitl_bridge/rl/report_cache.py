@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sitl_bridge.rl.atomic import atomic_write_json
+from sitl_bridge.rl.atomic import atomic_write_text
 
 CACHE_FORMAT = 1
 """Bumped when what the cached sections hold changes."""
@@ -47,6 +47,7 @@ def load(path: str | Path, key: dict[str, Any]) -> Any | None:
 
 
 def store(path: str | Path, key: dict[str, Any], value: Any) -> None:
-    """Keep `value` (JSON) at `path` under `key`."""
+    """Keep `value` (JSON) at `path` under `key`, its mappings in their order (a report lists
+    scenarios and shares in the order they were made)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(path, {"key": key, "value": value})
+    atomic_write_text(path, json.dumps({"key": key, "value": value}, indent=1, allow_nan=False) + "\n")
