@@ -151,7 +151,8 @@ def _experiment(folder: Path, extra: str = "") -> Path:
 def test_shipped_experiments_load() -> None:
     thesis = load_experiment(REPO / "experiments" / "thesis.yaml")
     assert [s.stem for s in thesis.scenarios] == ["empty", "random_goal", "obstacle", "random_obstacle", "window",
-                                                  "two_drones_empty", "two_drones_window", "street"]
+                                                  "two_drones_empty", "two_drones_window", "two_drones_empty_relative",
+                                                  "two_drones_window_relative", "street"]
     assert thesis.seeds == tuple(range(10)) and thesis.eval_episodes == 100
     assert {(c.stems[0], c.target) for c in thesis.comparisons} == {
         ("random_goal", "two_drones_empty"), ("window", "two_drones_window"), ("obstacle", "random_obstacle")}
