@@ -45,6 +45,7 @@ SIMPLER_THAN: dict[str, tuple[str, ...]] = {
     "two_drones_empty": ("random_goal",),  # TE after ER
     "two_drones_empty_relative": ("random_goal",),
     "two_drones_window": ("window",),     # TW after W
+    "two_drones_window_relative": ("window",),
 }
 """The thesis's incremental order by scenario file stem: the scenarios each one came after."""
 VERIFICATION_KEYS = ("covered", "success", "collision_rate", "out_rate", "timeout_rate", "episodes",
