@@ -142,6 +142,8 @@ def _experiment(folder: Path, extra: str = "") -> Path:
       thesis: {{shorthand: E, result: stable, source: "thesis Table 3"}}
   comparisons:
     - curriculum: {curriculum.name}
+  report: {{behaviour_episodes: 1, verify_episodes: 1, distill_episodes: 1, distill_iterations: 1,
+           picture_episodes: 1}}
 {extra}""")
     return path
 
@@ -193,7 +195,7 @@ def _mtimes(folder: Path) -> dict[str, int]:
 def test_experiment_end_to_end(finished) -> None:
     file, out = finished
     results = json.loads((out / "results.json").read_text())
-    assert set(results) == {"empty", "transfer"}  # no rules/trees modules here: sections left out
+    assert set(results) == {"empty", "transfer", "behaviour", "rules", "trees"}  # tests/test_results_sections.py
     empty = results["empty"]
     assert [s["seed"] for s in empty["seeds"]] == [0, 1]
     for seed in empty["seeds"]:
@@ -218,7 +220,7 @@ def test_experiment_end_to_end(finished) -> None:
 
     report = (out / "RESULTS.md").read_text()
     assert f"sitl-bridge experiment {file} --out {out}" in report
-    assert report.count("Not run (") == 2  # rules, trees
+    assert report.count("Not run (") == 0
     for figure in ("figures/empty.png", "figures/transfer_e_e.png", "figures/transfer_e_e_with_runs.png"):
         assert f"({figure})" in report and (out / figure).stat().st_size > 10_000
     meta = json.loads((out / "experiment.json").read_text())

@@ -14,6 +14,7 @@ An experiment file (`experiments/thesis.yaml`)::
       comparisons:                    # with vs without the earlier network, same seeds
         - curriculum: ../worlds/curricula/er_te.yaml
           thesis: {result: "about as many episodes with as without", source: "thesis 7.2"}
+      report: {behaviour_episodes: 10}   # the report step's own flights (`ReportSettings`)
 
 World and curriculum paths are relative to the current directory, or else to the experiment
 file. A comparison's curriculum names scenarios of the list in order; its first stage's runs are
@@ -47,7 +48,7 @@ from sitl_bridge.rl import sweep
 from sitl_bridge.rl.config import load_train_config, parse_train_node
 from sitl_bridge.rl.run_dir import RUN_FILE
 
-RESERVED = frozenset({"transfer", "rules", "trees"})
+RESERVED = frozenset({"transfer", "rules", "behaviour", "trees"})
 """Top-level keys of results.json that are not scenarios."""
 INVOCATIONS_FILE = "invocations.jsonl"
 """`DIR/runs/invocations.jsonl`: one line per training invocation (workers, backend, --only, counts)."""
@@ -87,6 +88,27 @@ class ComparisonSpec:
 
 
 @dataclass(frozen=True)
+class ReportSettings:
+    """How much the report step flies besides the greedy evaluation (the experiment file's
+    optional `report:` section; these defaults keep it to minutes per scenario)."""
+
+    behaviour_episodes: int = 10
+    """Greedy episodes per seed classified for the behaviour analysis and the candidate rules."""
+    verify_episodes: int = 20
+    """Episodes a scenario's rules YAML flies in each scenario it is verified in."""
+    distill_episodes: int = 20
+    """Episodes per DAgger iteration of the distillation, and of the tree-vs-network comparison."""
+    distill_iterations: int = 3
+    """DAgger iterations (trees fitted and scored)."""
+    distill_depth: int = 6
+    """Deepest distilled tree allowed."""
+    picture_episodes: int = 2
+    """Greedy episodes per seed flown for the grid of typical episodes."""
+    picture_cells: int = 6
+    """Most episodes (one per behaviour, most common first) in a scenario's grid."""
+
+
+@dataclass(frozen=True)
 class Experiment:
     name: str
     source: str
@@ -95,6 +117,7 @@ class Experiment:
     scenarios: tuple[ScenarioSpec, ...]
     comparisons: tuple[ComparisonSpec, ...]
     autopilot: str = "direct"
+    report: ReportSettings = field(default_factory=ReportSettings)
 
     def scenario(self, stem: str) -> ScenarioSpec:
         return next(s for s in self.scenarios if s.stem == stem)
@@ -109,7 +132,7 @@ def load_experiment(path: str | Path) -> Experiment:
     root = load_yaml(path)
     root.reject_unknown({"experiment"})
     node = root.get("experiment")
-    node.reject_unknown({"name", "seeds", "eval_episodes", "autopilot", "scenarios", "comparisons"})
+    node.reject_unknown({"name", "seeds", "eval_episodes", "autopilot", "scenarios", "comparisons", "report"})
     scenarios: list[ScenarioSpec] = []
     for item in node.get("scenarios").list(min_len=1):
         item.reject_unknown({"world", "train", "thesis"})
@@ -148,7 +171,16 @@ def load_experiment(path: str | Path) -> Experiment:
         scenarios=tuple(scenarios),
         comparisons=tuple(comparisons),
         autopilot=node.get("autopilot", "direct").string(("direct", "stub", "px4")),
+        report=_report_settings(node.get("report", {})),
     )
+
+
+def _report_settings(node: Node) -> ReportSettings:
+    names = [f.name for f in dataclasses.fields(ReportSettings)]
+    node.reject_unknown(set(names))
+    limits = {"distill_depth": 12}
+    return ReportSettings(**{name: child.integer(minimum=1, maximum=limits.get(name, 10_000))
+                             for name, child in node.items()})
 
 
 def _seeds(node: Node) -> list[int]:

@@ -1,8 +1,10 @@
 """RESULTS.md and its figures, made from results.json (and experiment.json: how it was made).
 
 Figures (`DIR/figures/`): per scenario the learning curves of its seeds (`plots.plot_runs`, mean
-and 95 % band), per comparison the transfer runs' curves and the greedy success with and without
-the earlier network in one panel (`plots.plot_greedy_groups`).
+and 95 % band) and a grid of its typical greedy episodes (`episode_grid`, `<stem>_episodes.png`),
+per comparison the transfer runs' curves and the greedy success with and without the earlier
+network in one panel (`plots.plot_greedy_groups`). The behaviour, rules and trees sections come
+from `results.json`'s `behaviour`, `rules` and `trees` (`rule_results`, `distill_results`).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from sitl_bridge.rl.experiment import RESERVED, Experiment
+from sitl_bridge.rl.experiment import RESERVED, Experiment, ReportSettings
 from sitl_bridge.rl.experiment_results import EVAL_SEED_BASE, THRESHOLD
 
 FIGURES = "figures"
@@ -25,11 +27,16 @@ def scenario_stems(results: dict[str, Any]) -> list[str]:
     return [key for key in results if key not in RESERVED]
 
 
-def write_figures(results: dict[str, Any], out: str | Path, say: Callable[[str], None] = print) -> None:
+def write_figures(results: dict[str, Any], out: str | Path, say: Callable[[str], None] = print,
+                  settings: ReportSettings | None = None) -> None:
     """Draw every figure the results have runs for; record each one's path (relative to `out`)
-    in its scenario's or comparison's object as `figure` (and `figure_with_runs`)."""
+    in its scenario's or comparison's object as `figure` (and `figure_with_runs`), and each
+    scenario's grid of typical episodes as `episodes_grid` (a grid that fails is reported, not raised)."""
+    from sitl_bridge.rl.checkpoint import CheckpointError
+    from sitl_bridge.rl.episode_grid import scenario_grid
     from sitl_bridge.rl.plots import NotARun, plot_greedy_groups, plot_runs
 
+    settings = settings or ReportSettings()
     out = Path(out)
     (out / FIGURES).mkdir(parents=True, exist_ok=True)
 
@@ -48,6 +55,12 @@ def write_figures(results: dict[str, Any], out: str | Path, say: Callable[[str],
     for stem in scenario_stems(results):
         if results[stem]["seeds"]:
             draw(stem, results[stem], "figure", lambda p, s=stem: plot_runs(dirs(results[s]), p))
+            try:
+                results[stem]["episodes_grid"] = scenario_grid(
+                    stem, results[stem], out, episodes_per_seed=settings.picture_episodes,
+                    cells=settings.picture_cells, seed=EVAL_SEED_BASE, say=say)
+            except (ValueError, OSError, CheckpointError) as exc:  # ConfigError among them
+                say(f"figure {stem}_episodes.png not drawn: {type(exc).__name__}: {exc}")
     for name, comparison in results.get("transfer", {}).items():
         with_dirs = dirs(comparison["with"])
         if with_dirs:
@@ -109,8 +122,9 @@ def render(results: dict[str, Any], meta: dict[str, Any]) -> str:
         f"{meta['eval_episodes']} episodes on held-out seeds (definitions at the end).",
         "",
     ]
-    lines += _scenario_table(results) + _thesis_table(results) + _figures(results)
-    lines += _transfer_section(results) + _rules_section(results, meta) + _trees_section(results, meta)
+    lines += _scenario_table(results) + _thesis_table(results) + _figures(results) + _transfer_section(results)
+    lines += _episodes_section(results) + _behaviour_section(results, meta) + _rules_section(results, meta)
+    lines += _trees_section(results, meta)
     lines += _per_seed(results) + _definitions(meta)
     return "\n".join(lines) + "\n"
 
@@ -208,18 +222,151 @@ def _not_run(name: str, meta: dict[str, Any]) -> list[str]:
     return [f"Not run ({reason}).", ""]
 
 
+def _status(entry: dict[str, Any] | None) -> str | None:
+    """Why a section's entry for a scenario holds no numbers (None: it does)."""
+    if entry is None:
+        return "not run"
+    if entry.get("status") == "done":
+        return None
+    reason = entry.get("reason")
+    return f"{entry.get('status', 'not run')}" + (f" ({_cell(reason)})" if reason else "")
+
+
+def _episodes_section(results: dict[str, Any]) -> list[str]:
+    lines = ["## Typical greedy episodes", "",
+             "Per scenario, the best checkpoint of every finished seed flies a few greedy episodes; they are "
+             "grouped by behaviour (each drone's manoeuvre and outcome) and the most common groups are drawn, "
+             "most common first: top view above side view, each drone's path with its action codes "
+             "(`3x4`: four steps of action 3, named in the scenario's own frame under the grid).", ""]
+    for stem in scenario_stems(results):
+        grid = results[stem].get("episodes_grid")
+        if not grid:
+            lines += [f"- `{stem}`: not run" if not results[stem]["seeds"] else f"- `{stem}`: not drawn", ""]
+            continue
+        behaviours = {c["behaviour"]: c["count"] for c in grid["cells"]}  # in the grid's order, once each
+        shown = ", ".join(f"{name} ({count})" for name, count in behaviours.items())
+        lines += [f"**`{stem}`**: {grid['episodes']} episodes ({grid['episodes_per_seed']} per seed, "
+                  f"{grid['seeds']} seeds), {len(grid['cells'])} drawn; behaviours (episodes): {shown}.", "", f"![{stem}: typical greedy episodes]({grid['figure']})", ""]
+    return lines
+
+
+def _top(shares: dict[str, float], count: int = 3) -> str:
+    """The `count` largest shares, largest first."""
+    ranked = sorted(shares.items(), key=lambda kv: (-kv[1], kv[0]))[:count]
+    return ", ".join(f"{name} {_pct(share)}" for name, share in ranked) or "-"
+
+
+def _behaviour_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
+    lines = ["## Behaviour across seeds", ""]
+    behaviour = results.get("behaviour")
+    if behaviour is None:
+        return lines + _not_run("rules", meta)
+    settings = meta.get("report") or {}
+    lines += [f"Every finished seed's best checkpoint flies the same {settings.get('behaviour_episodes', '?')} greedy "
+              f"episodes (reset seeds `eval_seeds({EVAL_SEED_BASE}, n)`); each drone-episode is classified into one "
+              "manoeuvre from its trajectory (`rl/behaviour.py`). The split counts the successful drone-episodes; "
+              "competing manoeuvres are reported side by side, never chosen silently.", "",
+              "| scenario | successful / all drone-episodes | split (successful) | majority per seed | per episode "
+              "| yields by priority | actions (own frame) |", "|---|---|---|---|---|---|---|"]
+    details: list[str] = []
+    for stem, b in behaviour.items():
+        why = _status(b)
+        if why:
+            lines.append(f"| `{stem}` | {why} | | | | | |")
+            continue
+        seeds = b["per_seed"]
+        wins = sum(sum(r["success_counts"].values()) for r in seeds)
+        total = sum(sum(r["counts"].values()) for r in seeds)
+        head = f"mostly {b['dominant']}: " if b["dominant"] else ("split: " if b["split"] else "")
+        majorities = sorted(b["seed_majorities"].items(), key=lambda kv: (-kv[1], kv[0]))
+        majority = (", ".join(f"{k} in {v}" for k, v in majorities) + f" of {b['seeds']}"
+                    if b["seed_majorities"] else "-")
+        patterns = _top(b["patterns"]) if any("+" in k for k in b["patterns"]) else "-"
+        yields = b["yield_priority"]
+        yielded = f"{yields['follows']} of {yields['episodes_with_yield']}" if yields["episodes_with_yield"] else "-"
+        lines.append(f"| `{stem}` | {wins} / {total} | {head}{_cell(b['split_text']) or 'no success'} "
+                     f"| {_cell(majority)} | {_cell(patterns)} | {yielded} "
+                     f"| {_cell(_top(b['actions']))} ({b['frame']}) |")
+        details += [f"<details><summary>`{stem}` per seed</summary>", "",
+                    "| seed | manoeuvres (all drone-episodes) | reached the goal | majority of the successes |",
+                    "|---|---|---|---|"]
+        for r in seeds:
+            counts = ", ".join(f"{k} {v}" for k, v in sorted(r["counts"].items(), key=lambda kv: -kv[1]))
+            details.append(f"| {r['label']} | {counts} | {r['outcomes'].get('goal', 0)} / {sum(r['outcomes'].values())} "
+                           f"| {r['majority'] or '-'} |")
+        details += ["", "</details>", ""]
+    return lines + [""] + details
+
+
 def _rules_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
     lines = ["## Rules", ""]
-    rules = results.get("rules")
-    if rules is None:
+    rules, behaviour = results.get("rules"), results.get("behaviour")
+    if rules is None or behaviour is None:
         return lines + _not_run("rules", meta)
-    lines += ["| rule | support (seeds, episodes) | verification: success / collision per scenario |",
-              "|---|---|---|"]
-    for rule in rules:
-        checks = "; ".join(f"`{stem}` {_pct(v.get('success'))} / {_pct(v.get('collision_rate'))}"
-                           for stem, v in (rule.get("verification") or {}).items() if isinstance(v, dict))
-        lines.append(f"| {_cell(rule.get('text', '-'))} | {rule.get('support_seeds', '-')}, "
-                     f"{rule.get('support_episodes', '-')} | {checks or '-'} |")
+    settings = meta.get("report") or {}
+    lines += ["Candidate rules from the classified episodes: the situation at the start of each manoeuvre "
+              "(a condition over the scenario's observation features), the action flown there and its support "
+              "(seeds in which it shows in at least half of the successful episodes; successful episodes "
+              "showing it). The rules kept *in the YAML* make the scenario's rules file (first matching rule "
+              "wins; without a supported unconditional rule it ends with the default: fly toward the goal); it "
+              f"is flown as a scripted policy ({settings.get('verify_episodes', '?')} episodes, `eval --rules`) "
+              "in the scenario it came from and in the simpler ones before it, beside the greedy success of "
+              "the network trained in each (the report's evaluation above).", ""]
+    for stem, b in behaviour.items():
+        if _status(b):
+            lines += [f"### `{stem}`", "", f"{_status(b).capitalize()}.", ""]
+            continue
+        mine = [r for r in rules if r.get("scenario") == stem]
+        fidelity = "" if b.get("rules_fidelity") is None else (
+            f"; it picks the network's action at {_pct(b['rules_fidelity'])} of {b['recorded_steps']} recorded steps")
+        kept = "; ".join(f"{k + 1}. {_cell(text)}" for k, text in enumerate(b.get("yaml_rules", [])))
+        lines += [f"### `{stem}`", "", f"Rules file [{b['rules_file']}]({b['rules_file']}) ({kept}){fidelity}.", "",
+                  "| rule | support: seeds | support: successful episodes | in the YAML | agrees with the network |",
+                  "|---|---|---|---|---|"]
+        for r in mine:
+            note = f" ({_cell(r['note'])})" if r.get("note") else ""
+            lines.append(f"| {_cell(r['text'])}{note} | {r['support_seeds']} of {r['seeds']} "
+                         f"| {r['support_episodes']} of {r['episodes']} | {'yes' if r['in_yaml'] else 'no'} "
+                         f"| {_pct(r.get('agreement'))} |")
+        if not mine:
+            lines.append("| none: no successful episode | | | | |")
+        lines += ["", "| rules flown in | covered | rules: success | rules: collision rate | network trained there: "
+                  "success | network: collision rate |", "|---|---|---|---|---|---|"]
+        for where, v in b["verification"].items():
+            if "skipped" in v:
+                lines.append(f"| `{where}` | {'yes' if v['covered'] else 'no'} | not flown: {_cell(v['skipped'])} | | | |")
+                continue
+            lines.append(f"| `{where}` | {'yes' if v['covered'] else 'no'} | {_pct(v['success'])} "
+                         f"| {_pct(v['collision_rate'])} | {_pct(v.get('network_success'))} "
+                         f"| {_pct(v.get('network_collision'))} |")
+        lines.append("")
+    return lines + _thesis_rules(behaviour)
+
+
+def _thesis_rules(behaviour: dict[str, Any]) -> list[str]:
+    """The thesis's rules 0-5: per rule, every scenario where it could be judged."""
+    verdicts: dict[int, list[str]] = {}
+    names: dict[int, str] = {}
+    for stem, b in behaviour.items():
+        for check in ([] if _status(b) else b["thesis_rules"]):
+            names[check["rule"]] = check["text"]
+            if not check["applicable"]:
+                continue
+            if check["recovered"] is None:
+                said = f"`{stem}`: no evidence (no {check['units']})"
+            else:
+                said = (f"`{stem}`: **{'recovered' if check['recovered'] else 'not recovered'}**, held in "
+                        f"{check['support_seeds']} of {check['seeds']} seeds ({check['support_episodes']} of "
+                        f"{check['episodes']} {check['units']} {check['evidence']})")
+            verdicts.setdefault(check["rule"], []).append(said)
+    if not names:
+        return []
+    lines = ["### The thesis's rules 0-5", "",
+             "Checked on the same classified episodes; a rule is recovered in a scenario when it holds in more than "
+             "half of its seeds. Scenarios where a rule does not apply are left out.", "",
+             "| thesis rule | found here |", "|---|---|"]
+    for rule in sorted(names):
+        lines.append(f"| {rule}: {_cell(names[rule])} | {'; '.join(map(_cell, verdicts.get(rule, []))) or 'not applicable in any scenario run'} |")
     return lines + [""]
 
 
@@ -228,11 +375,26 @@ def _trees_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
     trees = results.get("trees")
     if trees is None:
         return lines + _not_run("trees", meta)
-    lines += ["| scenario | depth | fidelity | tree success | network success |", "|---|---|---|---|---|"]
+    settings = meta.get("report") or {}
+    lines += [f"The greedy network of each scenario's best seed distilled into a decision tree of depth <= "
+              f"{settings.get('distill_depth', '?')} (VIPER-weighted, DAgger-resampled, "
+              f"{settings.get('distill_iterations', '?')} iterations of {settings.get('distill_episodes', '?')} "
+              "episodes; `sitl-bridge distill`). Fidelity: share of the network's actions the tree repeats on the "
+              "states the tree visits; tree and network fly the same evaluation episodes. Target (issue 13): depth "
+              "<= 6, fidelity >= 95 %, success within 5 points of the network's.", "",
+              "| scenario | seed | depth | leaves | fidelity | tree success | network success | tree collision rate "
+              "| target met | files |", "|---|---|---|---|---|---|---|---|---|---|"]
+    texts: list[str] = []
     for stem, t in trees.items():
-        lines.append(f"| `{stem}` | {t.get('depth', '-')} | {_pct(t.get('fidelity'))} | {_pct(t.get('success'))} "
-                     f"| {_pct(t.get('network_success'))} |")
-    return lines + [""]
+        why = _status(t)
+        if why:
+            lines.append(f"| `{stem}` | {why} | | | | | | | | |")
+            continue
+        lines.append(f"| `{stem}` | {t['seed']} | {t['depth']} | {t['leaves']} | {_pct(t['fidelity'])} "
+                     f"| {_pct(t['success'])} | {_pct(t['network_success'])} | {_pct(t['crash'])} "
+                     f"| {'yes' if t['meets_target'] else 'no'} | [text]({t['text_file']}), [rules]({t['rules_file']}) |")
+        texts += [f"<details><summary>`{stem}` tree</summary>", "", "```", t["text"], "```", "", "</details>", ""]
+    return lines + [""] + texts
 
 
 def _per_seed(results: dict[str, Any]) -> list[str]:
@@ -271,8 +433,22 @@ def _definitions(meta: dict[str, Any]) -> list[str]:
         f"with {_parallel(meta)} (they share the CPU). Median over the seeds that reached it.",
         "- **Comparison test**: Mann-Whitney U (two-sided, scipy) on episodes to 90 %, runs that never "
         "reached it counted as their episode budget.",
+        *_report_flights(meta),
         "",
     ]
+
+
+def _report_flights(meta: dict[str, Any]) -> list[str]:
+    """What the behaviour, rules, trees and pictures flew (the experiment file's `report:` section)."""
+    settings = meta.get("report")
+    if not settings:
+        return []
+    return [f"- **Report flights** (the experiment file's `report:` section; reset seeds `eval_seeds({EVAL_SEED_BASE}, n)`, "
+            "cached per scenario in `rules/`, `trees/`, `figures/` while the checkpoints are the same): behaviour "
+            f"{settings['behaviour_episodes']} greedy episodes per seed; rules YAMLs {settings['verify_episodes']} "
+            f"episodes per scenario flown; trees depth <= {settings['distill_depth']}, {settings['distill_iterations']} "
+            f"DAgger iterations of {settings['distill_episodes']} episodes, best seed only; pictures "
+            f"{settings['picture_episodes']} greedy episodes per seed, up to {settings['picture_cells']} drawn."]
 
 
 def _parallel(meta: dict[str, Any]) -> str:
@@ -294,6 +470,7 @@ def write_report(results: dict[str, Any], meta: dict[str, Any], out: str | Path)
 
 def meta_of(experiment: Experiment, out: str | Path, command: str, sections_not_run: dict[str, str]) -> dict[str, Any]:
     """experiment.json: how the results were made."""
+    import dataclasses
     import time
 
     from sitl_bridge import __version__
@@ -309,5 +486,5 @@ def meta_of(experiment: Experiment, out: str | Path, command: str, sections_not_
         "eval_episodes": experiment.eval_episodes, "threshold": THRESHOLD, "eval_seed_base": EVAL_SEED_BASE,
         "autopilot": experiment.autopilot, "training": invocations(out), "version": __version__,
         "git_commit": source_commit(), "written": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "sections_not_run": sections_not_run,
+        "sections_not_run": sections_not_run, "report": dataclasses.asdict(experiment.report),
     }

@@ -40,6 +40,7 @@ from sitl_bridge.rl.atomic import atomic_write_json, atomic_write_text
 from sitl_bridge.rl.experiment import (
     ComparisonSpec,
     Experiment,
+    ReportSettings,
     finished,
     job_folder,
     run_of,
@@ -63,9 +64,10 @@ SECTION_HOOKS: dict[str, str] = {
     "rules": "sitl_bridge.rl.rule_results:add_results_section",
     "trees": "sitl_bridge.rl.distill_results:add_results_section",
 }
-"""Sections other modules add: `add_results_section(results: dict, out: Path) -> None` sets
-`results[name]` (it may read the runs through each seed's `run_dir`, relative to `out`). A
-section whose module is not installed is left out and reported as not run."""
+"""Sections other modules add: `add_results_section(results: dict, out: Path, *, settings:
+ReportSettings, say) -> None` sets `results[name]` (the rules hook also `results["behaviour"]`;
+it may read the runs through each seed's `run_dir`, relative to `out`). A section whose module is
+not installed is left out and reported as not run."""
 
 
 # -- one run -------------------------------------------------------------------------------
@@ -278,8 +280,8 @@ def _comparison(comparison: ComparisonSpec, results: dict[str, Any],
             **compare(with_seeds, without["seeds"])}
 
 
-def add_sections(results: dict[str, Any], out: str | Path,
-                 hooks: dict[str, str] | None = None) -> dict[str, str]:
+def add_sections(results: dict[str, Any], out: str | Path, hooks: dict[str, str] | None = None, *,
+                 settings: ReportSettings | None = None, say: Callable[[str], None] = print) -> dict[str, str]:
     """Run every section hook whose module is installed; returns why the others are missing
     (`{name: reason}`), which RESULTS.md reports as not run. A failing hook is reported, not raised:
     the report of hours of training must still be written."""
@@ -295,7 +297,7 @@ def add_sections(results: dict[str, Any], out: str | Path,
             missing[name] = f"{module_name} failed to import: {exc}"
             continue
         try:
-            getattr(module, function)(results, Path(out))
+            getattr(module, function)(results, Path(out), settings=settings or ReportSettings(), say=say)
         except Exception as exc:  # noqa: BLE001 - reported in RESULTS.md and on stderr
             log.exception("results section %s failed", name)
             results.pop(name, None)

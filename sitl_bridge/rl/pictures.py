@@ -16,6 +16,7 @@ animates the drones (and movers) step by step.
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,8 @@ AXIS_LABELS_IN = 0.7
 """Width (inches) the y tick labels and axis name take beside a view (sizes figures to scale)."""
 LABEL_CROWD = 0.03
 """Action labels closer than this share of the travel axis' span are stacked, not overlaid."""
+MAX_STACKED = 6
+"""Labels stacked at one place at most; the next one is drawn as `...`, later ones not at all."""
 SIDE_ALPHA = 0.5
 """Obstacles' fill in the side view relative to the top view's."""
 _SWAPPED = {0: 1, 1: 0, 2: 3, 3: 2}
@@ -108,7 +111,10 @@ def draw_grid(episodes: Sequence[EpisodePicture], out: str | Path, titles: Seque
             side = fig.add_subplot(grid[2 * r + 1, c], sharex=top)
             _draw_views(top, side, picture, upto=None, compact=True)
             top.set_title(title, fontsize=8)
-        fig.supxlabel(action_legend(episodes[0].scenario), fontsize=7)
+        # wrapped to the figure's width (one narrow cell would cut it off); ~18 characters per inch at 7 pt
+        width = int(18 * cell_w * columns)
+        legend = "\n".join(textwrap.fill(line, width) for line in action_legend(episodes[0].scenario).splitlines())
+        fig.supxlabel(legend, fontsize=7)
         fig.savefig(out, dpi=dpi)
     finally:
         fig.clear()
@@ -422,9 +428,13 @@ def _label_actions(ax: Any, project: Any, path: np.ndarray, trace: Trace, upto: 
         text = str(code) if n == 1 else f"{code}x{n}"
         crowd = sum(1 for x, y in placed if abs(x - where[0]) < near and abs(y - where[1]) < near)
         placed.append(where)
-        ax.annotate(text, where, xytext=(dx, dy - 8 * crowd), textcoords="offset points", fontsize=5 if compact else 6.5,
-                    color=color, zorder=7, fontweight="bold",
-                    bbox={"boxstyle": "round,pad=0.12", "facecolor": "white", "alpha": 0.7, "linewidth": 0})
+        if crowd > MAX_STACKED:
+            continue  # an oscillation's labels would run off the picture: the stack ends in "..."
+        label = ax.annotate("..." if crowd == MAX_STACKED else text, where, xytext=(dx, dy - 8 * crowd),
+                            textcoords="offset points", fontsize=5 if compact else 6.5, color=color, zorder=7,
+                            fontweight="bold",
+                            bbox={"boxstyle": "round,pad=0.12", "facecolor": "white", "alpha": 0.7, "linewidth": 0})
+        label.set_in_layout(False)  # a label beside the axes never resizes the figure's layout
 
 
 def _action_names(frame: str, swapped: bool) -> str:

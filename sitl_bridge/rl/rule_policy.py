@@ -27,6 +27,7 @@ in either frame; one that uses 0-3 only in its own. Evaluation goes through
 from __future__ import annotations
 
 import operator
+import os
 import re
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -261,17 +262,33 @@ def rule_policy(rules: str | Path | RuleSet, world: str | Path) -> RulePolicy:
 
 
 def covered_scenarios(rules: RuleSet) -> list[Path]:
-    """The scenario files of `covers`: next to the rule file, else a shipped world name."""
+    """The scenario files of `covers`: next to the rule file, else a shipped world name. A rules
+    file named like the scenario it covers (`rules/empty.yaml` covering `empty.yaml`) is not its
+    own scenario."""
     here = Path(rules.source).parent
+    itself = Path(rules.source).resolve()
     paths = []
     for i, name in enumerate(rules.covers):
         local = here / name
         try:
-            paths.append(local if local.is_file() else resolve_world(name))
+            paths.append(local if local.is_file() and local.resolve() != itself else resolve_world(name))
         except ConfigError as exc:
             raise ConfigError(f"{rules.source}: covers[{i}]: expected a scenario file, got {name!r} "
                               f"({str(exc).split(': ', 1)[-1]})") from None
     return paths
+
+
+def cover_name(world: str | Path, folder: str | Path) -> str:
+    """How a rules file in `folder` names the scenario file `world` under `covers` so that
+    `covered_scenarios` finds it again: its bare name when that is this very file (a shipped
+    world), else its path relative to `folder`."""
+    world = Path(world).resolve()
+    try:
+        if resolve_world(world.name).resolve() == world:
+            return world.name
+    except ConfigError:
+        pass
+    return os.path.relpath(world, Path(folder).resolve())
 
 
 def evaluate_rules(rules: str | Path | RuleSet, world: str | Path, *, episodes: int, autopilot: str = "direct",
