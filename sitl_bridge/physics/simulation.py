@@ -265,6 +265,15 @@ class Simulation:
             v.cached = VehicleState._from_vector(v.x.copy(), tuple(v.rotors.speeds.tolist()), v.on_ground)
         return v.cached
 
+    def vehicle_vector(self, vehicle: int) -> np.ndarray:
+        """The vehicle's live state vector (`physics.state` layout), updated in place every
+        step: for compiled per-step kernels (the fused `direct` loop). Do not modify it."""
+        return self._vehicles[vehicle].x
+
+    def rotors(self, vehicle: int) -> RotorSet:
+        """The vehicle's rotor model (its `speeds` and `constants` vectors live as long as the simulation)."""
+        return self._vehicles[vehicle].rotors
+
     def pose(self, vehicle: int) -> tuple[Vec3, tuple[float, float, float, float]]:
         """Fast path: (position ENU m, quaternion ENU/FLU (w, x, y, z)) as plain tuples."""
         v = self._vehicles[vehicle]

@@ -35,7 +35,13 @@ from .control import (
     position_control,
     rate_control,
 )
-from .estimator import Estimate, GroundTruthEstimator, SensorEstimator
+from .estimator import (
+    GRAVITY_M_S2,
+    Estimate,
+    GroundTruthEstimator,
+    SensorEstimator,
+    estimator_imu_step,
+)
 from .mixer import QuadGeometry, QuadXMixer, mix
 from .modes import CommandResult, LandedState, system_id_for
 from .params import ParamTable
@@ -44,6 +50,7 @@ if TYPE_CHECKING:
     from sitl_bridge.sensors import SensorFrame
 
 _NAN = float("nan")
+_WARM = False  # the kernels are loaded in this process (StubAutopilot.warm_up)
 
 
 def _f3(v) -> tuple[float, float, float]:  # noqa: ANN001 - any 3-sequence of numbers
@@ -149,6 +156,28 @@ class StubAutopilot:
         self.steps = 0
         self._last_time_us: int | None = None
         self._position_last_us: int | None = None  # the outer loop's last run
+        self.warm_up()
+
+    def warm_up(self) -> None:
+        """Load (or, with a cold cache, compile) the compiled kernels now, on scratch copies of
+        the state, so that the first lockstep step answers as fast as the others (numba's
+        first use in a process costs about a second)."""
+        global _WARM
+        if _WARM:
+            return
+        self.refresh_gains()
+        estimator = SensorEstimator()
+        estimator_imu_step(estimator.state, estimator.gains, 0.0, 0.0, -GRAVITY_M_S2, 0.0, 0.0, 0.0, True, 0.2, 0.0,
+                           0.4, 0.004, 4000)
+        ctl, pc = self.control.copy(), self.position_control
+        nan3 = (_NAN, _NAN, _NAN)
+        zero3 = (0.0, 0.0, 0.0)
+        outer_loop_kernel(ctl, pc.state.copy(), pc.gains, 0.004, zero3, nan3, _NAN, _NAN, zero3, zero3, zero3, False,
+                          0.0)
+        inner_loop_kernel(ctl, self.attitude_control.gains, self.rate_control.state.copy(), self.rate_control.gains,
+                          self.mixer.constants, self.mixer.state.copy(), 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004,
+                          False)
+        _WARM = True
 
     def reset(self) -> None:
         """Reboot in place, as PX4 after `reboot` on a vehicle whose sensors keep running:
@@ -220,9 +249,19 @@ class StubAutopilot:
         self._command = command = _armed_command(u)
         return command
 
+    @property
+    def yaw_rate_ff(self) -> float:
+        """The yaw-rate feed-forward (rad/s) of this step's setpoint, for `inner_loop`."""
+        return self._yaw_rate_ff
+
+    def outputs_in_control(self) -> None:
+        """Record that this step's motor outputs were computed by a caller's own compiled
+        `inner_loop` (the fused `direct` loop): `last_command` reads them from `control`."""
+        self._command = None
+
     def prepare(self, est: Estimate) -> float | None:
         """The commander and the position loop for this step's estimate. Returns the step (s)
-        when the inner loop must run (`inner_loop`, with `self._yaw_rate_ff`), or None when the
+        when the inner loop must run (`inner_loop`, with `yaw_rate_ff`), or None when the
         motors are off or idle (`last_command` is then set)."""
         time_us = est.time_us
         last = self._last_time_us

@@ -214,6 +214,12 @@ def estimator_imu_step(s: np.ndarray, k: np.ndarray, ax: float, ay: float, az: f
 
 
 @dual
+def attitude_and_rates(s: np.ndarray) -> tuple[Quat, Vec3]:
+    """The estimator state's attitude and bias-corrected body rates (what the inner loop uses)."""
+    return (s[_Q], s[_Q + 1], s[_Q + 2], s[_Q + 3]), (s[_RATES], s[_RATES + 1], s[_RATES + 2])
+
+
+@dual
 def geodetic(s: np.ndarray) -> tuple[float, float, float]:
     """(lat deg, lon deg, alt m AMSL) of the estimated position around the origin (0s without one)."""
     if s[_HAS_ORIGIN] == 0.0:
