@@ -52,10 +52,6 @@ if TYPE_CHECKING:
 _NAN = float("nan")
 _WARM = False  # the kernels are loaded in this process (StubAutopilot.warm_up)
 
-
-def _f3(v) -> tuple[float, float, float]:  # noqa: ANN001 - any 3-sequence of numbers
-    """A 3-tuple of Python floats (one numba signature for every caller)."""
-    return (float(v[0]), float(v[1]), float(v[2]))
 #: period of the position/velocity loop (the attitude and rate loops run every step); it runs on
 #: the step nearest to each period, whatever the physics step, and integrates the time that
 #: actually passed (8 ms: every 2nd step at 4 ms, every 4th at 2 ms, every 3rd at 3 ms)
@@ -94,11 +90,13 @@ def outer_loop(ctl: np.ndarray, pc_state: np.ndarray, pc_gains: np.ndarray, dt_s
 
 
 @kernel(frames, vec, control)
-def outer_loop_kernel(ctl: np.ndarray, pc_state: np.ndarray, pc_gains: np.ndarray, dt_s: float, psp: tuple,
-                      vff: tuple, up_max: float, down_max: float, pos: tuple, vel: tuple, acc: tuple,
-                      maybe_landed: bool, yaw: float) -> None:
-    """`outer_loop`, compiled."""
-    outer_loop(ctl, pc_state, pc_gains, dt_s, psp, vff, up_max, down_max, pos, vel, acc, maybe_landed, yaw)
+def outer_loop_kernel(ctl: np.ndarray, pc_state: np.ndarray, pc_gains: np.ndarray, dt_s: float, sp0: float,
+                      sp1: float, sp2: float, ff0: float, ff1: float, ff2: float, up_max: float, down_max: float,
+                      p0: float, p1: float, p2: float, v0: float, v1: float, v2: float, a0: float, a1: float,
+                      a2: float, maybe_landed: bool, yaw: float) -> None:
+    """`outer_loop`, compiled (plain float arguments: numba types tuples slowly)."""
+    outer_loop(ctl, pc_state, pc_gains, dt_s, (sp0, sp1, sp2), (ff0, ff1, ff2), up_max, down_max, (p0, p1, p2),
+               (v0, v1, v2), (a0, a1, a2), maybe_landed, yaw)
 
 
 @dual
@@ -172,8 +170,8 @@ class StubAutopilot:
         ctl, pc = self.control.copy(), self.position_control
         nan3 = (_NAN, _NAN, _NAN)
         zero3 = (0.0, 0.0, 0.0)
-        outer_loop_kernel(ctl, pc.state.copy(), pc.gains, 0.004, zero3, nan3, _NAN, _NAN, zero3, zero3, zero3, False,
-                          0.0)
+        outer_loop_kernel(ctl, pc.state.copy(), pc.gains, 0.004, *zero3, *nan3, _NAN, _NAN, *zero3, *zero3, *zero3,
+                          False, 0.0)
         inner_loop_kernel(ctl, self.attitude_control.gains, self.rate_control.state.copy(), self.rate_control.gains,
                           self.mixer.constants, self.mixer.state.copy(), 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004,
                           False)
@@ -188,17 +186,18 @@ class StubAutopilot:
         time; the next `update` may come at any time (an in-place simulation reset).
 
         The same object stays in place, so the HIL client and MAVLink API that refer to it
-        carry on. A new StubAutopilot is the cold boot (ALIGN_S). The controllers' vectors
-        are reset in place too (the fused `direct` loop holds them).
+        carry on. A new StubAutopilot is the cold boot (ALIGN_S). The controllers are new
+        objects with new vectors (a fused loop that holds them takes them again).
         """
         time_us = self.commander.time_us
         self.estimator.reset()
         self.commander = Commander(self.params)
         self.commander.time_us = time_us
         self.mixer.saturated = False
-        self.position_control.reset()
-        self.position_control.state[:] = PositionControl(self.params).state
-        self.rate_control.reset()
+        self.position_control = PositionControl(self.params)
+        self.attitude_control = AttitudeControl(self.params)
+        self.rate_control = RateControl(self.params)
+        self._gains_version = -1
         self._command = _OFF
         self.control[:] = 0.0
         self.control[_Q_SP] = 1.0
@@ -300,10 +299,10 @@ class StubAutopilot:
         if yaw != yaw:
             yaw = est.euler_rad[2]
         pc = self.position_control
-        outer_loop_kernel(self.control, pc.state, pc.gains, dt_s, _f3(sp.position_ned_m), _f3(sp.velocity_ned_m_s),
-                          float(sp.max_velocity_up_m_s), float(sp.max_velocity_down_m_s), _f3(est.position_ned_m),
-                          _f3(est.velocity_ned_m_s), _f3(est.accel_ned_m_s2), bool(self.commander.maybe_landed),
-                          float(yaw))
+        # setpoints are floats (the commander sanitises them), the estimate too
+        outer_loop_kernel(self.control, pc.state, pc.gains, dt_s, *sp.position_ned_m, *sp.velocity_ned_m_s,
+                          float(sp.max_velocity_up_m_s), float(sp.max_velocity_down_m_s), *est.position_ned_m,
+                          *est.velocity_ned_m_s, *est.accel_ned_m_s2, self.commander.maybe_landed, float(yaw))
 
     # --- commander -----------------------------------------------------------------------------
     def arm(self) -> CommandResult:

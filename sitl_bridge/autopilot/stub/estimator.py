@@ -179,11 +179,12 @@ def initial_attitude(ax: float, ay: float, az: float, has_mag: bool, mx: float, 
 @kernel(frames, vec)
 def estimator_imu_step(s: np.ndarray, k: np.ndarray, ax: float, ay: float, az: float, gx: float, gy: float,
                        gz: float, has_mag: bool, mx: float, my: float, mz: float, dt: float, time_us: int
-                       ) -> tuple[Quat, Vec3, Vec3, Vec3, Vec3, float, float, float]:
+                       ) -> tuple[Quat, Vec3, Vec3, Vec3, Vec3, float, float, float, bool]:
     """One IMU (+ magnetometer) sample folded into the estimator state `s`: the complementary
     attitude filter, then the accelerometer's prediction of velocity and position. Returns the
     estimate's (attitude, rates, position, velocity, acceleration, lat, lon, alt AMSL) before any
-    GPS / baro correction of this step (`SensorEstimator.finish`)."""
+    GPS / baro correction of this step (`SensorEstimator.finish`), and whether the initial
+    alignment is over."""
     w0, w1, w2 = gx - s[_GYRO_BIAS], gy - s[_GYRO_BIAS + 1], gz - s[_GYRO_BIAS + 2]
     s[_RATES], s[_RATES + 1], s[_RATES + 2] = w0, w1, w2
     if s[_HAS_Q] == 0.0:
@@ -210,7 +211,7 @@ def estimator_imu_step(s: np.ndarray, k: np.ndarray, ax: float, ay: float, az: f
     s[lp + 1] += 0.2 * (ae - s[lp + 1])
     s[lp + 2] += 0.2 * (ad - s[lp + 2])
     return (q, (w0, w1, w2), (s[_POS], s[_POS + 1], s[_POS + 2]), (s[_VEL], s[_VEL + 1], s[_VEL + 2]),
-            (s[lp], s[lp + 1], s[lp + 2])) + geodetic(s)
+            (s[lp], s[lp + 1], s[lp + 2])) + geodetic(s) + (time_us >= s[_ALIGN_UNTIL_US],)  # NaN: False
 
 
 @dual
@@ -365,7 +366,7 @@ class SensorEstimator:
         e = self.estimate
         e.time_us = time_us
         (e.quaternion_ned_frd, e.angular_velocity_frd_rad_s, e.position_ned_m, e.velocity_ned_m_s,
-         e.accel_ned_m_s2, e.lat_deg, e.lon_deg, e.alt_amsl_m) = values
+         e.accel_ned_m_s2, e.lat_deg, e.lon_deg, e.alt_amsl_m, aligned) = values
         e.attitude_valid = True
         if gps is not None or baro is not None:
             if gps is not None:
@@ -378,7 +379,7 @@ class SensorEstimator:
             e.velocity_ned_m_s = tuple(s[_VEL:_VEL + 3].tolist())  # type: ignore[assignment]
             e.lat_deg, e.lon_deg, e.alt_amsl_m = geodetic(s)
         # like EKF2, report a usable position only once the attitude has aligned
-        e.position_valid = e.origin is not None and bool(time_us >= self.state[_ALIGN_UNTIL_US])  # NaN: False
+        e.position_valid = aligned and e.origin is not None
         return e
 
     # --- position (GPS, baro: Python on the state vector) ---------------------------------

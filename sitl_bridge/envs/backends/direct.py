@@ -119,6 +119,8 @@ class DirectBackend:
             suite.reset(sensor_seed(seed, i))
         for autopilot in self.autopilots:
             autopilot.reset()
+        if self._lanes is not None:  # the autopilots' controllers are new objects
+            self._lanes = [self._lane(i) for i in range(self.num_drones)]
         self._velocities = [(0.0, 0.0, 0.0)] * self.num_drones
         self._hover_start()
         self._collided = [False] * self.num_drones
