@@ -39,6 +39,7 @@ Q_FRD_FLU: Quat = (0.0, 1.0, 0.0, 0.0)
 # --------------------------------------------------------------------------------------------
 # vectors: world ENU <-> NED, body FLU <-> FRD (each mapping is its own inverse)
 # --------------------------------------------------------------------------------------------
+@dual
 def enu_to_ned_xyz(x: float, y: float, z: float) -> Vec3:
     """ENU (east, north, up) -> NED (north, east, down), plain floats."""
     return (y, x, -z)
@@ -47,6 +48,7 @@ def enu_to_ned_xyz(x: float, y: float, z: float) -> Vec3:
 ned_to_enu_xyz = enu_to_ned_xyz  # the swap is an involution
 
 
+@dual
 def flu_to_frd_xyz(x: float, y: float, z: float) -> Vec3:
     """FLU (forward, left, up) -> FRD (forward, right, down), plain floats."""
     return (x, -y, -z)

@@ -26,7 +26,7 @@ from sitl_bridge.frames import (
 )
 from sitl_bridge.jit import dual, kernel
 from sitl_bridge.physics.simulation import VehicleState
-from sitl_bridge.physics.state import FORCE_FLU, OMEGA_FLU, POS, QUAT, VEL
+from sitl_bridge.physics.state import ACCEL, FORCE_FLU, OMEGA_FLU, POS, QUAT, VEL
 from sitl_bridge.sensors.environment import (
     KELVIN_OFFSET,
     isa_pressure_pa,
@@ -97,6 +97,25 @@ class GpsSample:
     satellites: int
 
 
+@dual
+def truth_of(position_enu: tuple, q_enu_flu: tuple, velocity_enu: tuple, omega_flu: tuple, accel_enu: tuple
+             ) -> tuple[tuple[float, ...], ...]:
+    """The ground truth in PX4's frames, from ENU / FLU state: (quaternion NED/FRD, angular
+    velocity FRD, velocity NED, acceleration NED, position NED), plain-float tuples."""
+    return (quat_enu_flu_to_ned_frd_t(q_enu_flu), flu_to_frd_xyz(omega_flu[0], omega_flu[1], omega_flu[2]),
+            enu_to_ned_xyz(velocity_enu[0], velocity_enu[1], velocity_enu[2]),
+            enu_to_ned_xyz(accel_enu[0], accel_enu[1], accel_enu[2]),
+            enu_to_ned_xyz(position_enu[0], position_enu[1], position_enu[2]))
+
+
+@dual
+def truth_of_vector(x: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    """`truth_of` a state vector (`physics.state` layout)."""
+    return truth_of((x[POS], x[POS + 1], x[POS + 2]), (x[QUAT], x[QUAT + 1], x[QUAT + 2], x[QUAT + 3]),
+                    (x[VEL], x[VEL + 1], x[VEL + 2]), (x[OMEGA_FLU], x[OMEGA_FLU + 1], x[OMEGA_FLU + 2]),
+                    (x[ACCEL], x[ACCEL + 1], x[ACCEL + 2]))
+
+
 class GroundTruth:
     """Noise-free state in PX4's frames (what HIL_STATE_QUATERNION carries). Immutable.
 
@@ -136,8 +155,7 @@ class GroundTruth:
         plain-float tuples."""
         assert self._state is not None
         position_enu, q_enu_flu, velocity_enu, omega_flu, _, accel_enu = self._state.raw
-        return (quat_enu_flu_to_ned_frd_t(q_enu_flu), flu_to_frd_xyz(*omega_flu), enu_to_ned_xyz(*velocity_enu),
-                enu_to_ned_xyz(*accel_enu), enu_to_ned_xyz(*position_enu))
+        return truth_of(position_enu, q_enu_flu, velocity_enu, omega_flu, accel_enu)
 
     def __repr__(self) -> str:
         return (f"GroundTruth(position_ned_m={self.raw[4]}, velocity_ned_m_s={self.raw[2]}, "
@@ -358,10 +376,9 @@ class SensorSuite:
         estimator): no sensor is simulated and no noise drawn; accel/gyro carry the noise-free
         specific force and rates (FRD tuples), mag/baro/GPS are None. Not a PX4 input."""
         position_enu, q_enu_flu, velocity_enu, omega_flu, force_flu, accel_enu = state.raw
-        gyro = flu_to_frd_xyz(*omega_flu)
-        truth = GroundTruth._lazy((quat_enu_flu_to_ned_frd_t(q_enu_flu), gyro, enu_to_ned_xyz(*velocity_enu),
-                                   enu_to_ned_xyz(*accel_enu), enu_to_ned_xyz(*position_enu)), self._projection)
-        return SensorFrame(time_us, flu_to_frd_xyz(*force_flu), gyro, None, None, None, truth)  # type: ignore[arg-type]
+        values = truth_of(position_enu, q_enu_flu, velocity_enu, omega_flu, accel_enu)
+        truth = GroundTruth._lazy(values, self._projection)
+        return SensorFrame(time_us, flu_to_frd_xyz(*force_flu), values[1], None, None, None, truth)  # type: ignore[arg-type]
 
     def _gps(self, pn: float, pe: float, pd: float, vn: float, ve: float, vd: float) -> GpsSample:
         n = self.noise

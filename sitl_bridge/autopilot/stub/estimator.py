@@ -96,18 +96,40 @@ def _floats(v) -> tuple[float, ...] | list[float]:
         return [float(x) for x in v]
 
 
+# GroundTruthEstimator.state layout: the origin in the truth's NED, metres per degree of
+# latitude and longitude there, the origin's (lat deg, lon deg, alt m AMSL)
+_GT_ORIGIN_NED, _GT_M_PER_DEG, _GT_ORIGIN = 0, 3, 5
+GROUND_TRUTH_STATE = 8
+
+
+@dual
+def relative_estimate(g, q: Quat, rates: Vec3, vel: Vec3, acc: Vec3, px: float, py: float,  # noqa: ANN001
+                      pz: float) -> tuple[Quat, Vec3, Vec3, Vec3, Vec3, float, float, float]:
+    """The ground-truth estimate around the origin in `g` (`GroundTruthEstimator.state`, as an
+    array or a tuple): (attitude, rates, position, velocity, acceleration, lat, lon, alt AMSL).
+    The geodetic position comes from the local one around the origin, as `SensorEstimator`
+    does (cm-exact over an env's workspace; a projection per step would cost more)."""
+    north, east, down = px - g[_GT_ORIGIN_NED], py - g[_GT_ORIGIN_NED + 1], pz - g[_GT_ORIGIN_NED + 2]
+    return (q, rates, (north, east, down), vel, acc, g[_GT_ORIGIN] + north / g[_GT_M_PER_DEG],
+            g[_GT_ORIGIN + 1] + east / g[_GT_M_PER_DEG + 1], g[_GT_ORIGIN + 2] - down)
+
+
 class GroundTruthEstimator:
-    """Estimate = SensorFrame.truth. Labelled as such: PX4 never sees ground truth."""
+    """Estimate = SensorFrame.truth. Labelled as such: PX4 never sees ground truth.
+
+    The origin lives in the float64 `state` vector (`relative_estimate`, which the fused
+    `direct` loop compiles in) once `has_origin`."""
 
     def __init__(self) -> None:
         self.estimate = Estimate()
-        self._origin_ned: Vec3 | None = None
-        self._m_per_deg = (1.0, 1.0)   # metres per degree of latitude, longitude at the origin
+        self.state = np.zeros(GROUND_TRUTH_STATE)
+        self._origin: tuple[float, ...] = tuple(self.state.tolist())
+        self.has_origin = False
 
     def reset(self) -> None:
         """Forget everything: the next frame's truth is the new origin."""
         self.estimate = Estimate()
-        self._origin_ned = None
+        self.has_origin = False
 
     def update(self, frame: SensorFrame) -> Estimate:
         """Copy the truth of this frame into the estimate."""
@@ -119,29 +141,22 @@ class GroundTruthEstimator:
         # `raw`: the truth as plain-float tuples (quaternion, rates, velocity, accel, position);
         # the numpy views would cost more to build than this whole update
         q, rates, vel, acc, (px, py, pz) = t.raw
-        if self._origin_ned is None:
-            self._origin_ned = (px, py, pz)
+        if not self.has_origin:
             e.origin = (t.lat_e7 * 1e-7, t.lon_e7 * 1e-7, t.alt_mm * 1e-3)  # geodetic only once
-            self._m_per_deg = (math.radians(EARTH_RADIUS_M),
-                               math.radians(EARTH_RADIUS_M * math.cos(math.radians(e.origin[0]))))
-        o = self._origin_ned
-        e.time_us = frame.time_us
-        north, east, down = px - o[0], py - o[1], pz - o[2]
-        e.position_ned_m = (north, east, down)
-        e.velocity_ned_m_s = vel
-        e.accel_ned_m_s2 = acc
-        e.quaternion_ned_frd = q
-        e.angular_velocity_frd_rad_s = rates
-        # geodetic position from the local one around the origin, as `SensorEstimator` does
-        # (cm-exact over an env's workspace; a projection per step would cost more)
-        lat0, lon0, alt0 = e.origin  # type: ignore[misc]
-        m_lat, m_lon = self._m_per_deg
-        e.lat_deg = lat0 + north / m_lat
-        e.lon_deg = lon0 + east / m_lon
-        e.alt_amsl_m = alt0 - down
+            self.state[:] = (px, py, pz, math.radians(EARTH_RADIUS_M),
+                             math.radians(EARTH_RADIUS_M * math.cos(math.radians(e.origin[0]))), *e.origin)
+            self._origin = tuple(self.state.tolist())
+            self.has_origin = True
+        return self.finish(relative_estimate(self._origin, q, rates, vel, acc, px, py, pz), frame.time_us, frame.gps)
+
+    def finish(self, values: tuple, time_us: int, gps=None) -> Estimate:  # noqa: ANN001
+        """The estimate from `relative_estimate`'s values (and the frame's GPS, if any)."""
+        e = self.estimate
+        e.time_us = time_us
+        (e.quaternion_ned_frd, e.angular_velocity_frd_rad_s, e.position_ned_m, e.velocity_ned_m_s,
+         e.accel_ned_m_s2, e.lat_deg, e.lon_deg, e.alt_amsl_m) = values
         e.attitude_valid = True
         e.position_valid = True
-        gps = frame.gps
         if gps is not None:
             e.gps_fix_type, e.gps_satellites = int(gps.fix_type), int(gps.satellites)
             e.gps_eph_cm, e.gps_epv_cm = int(gps.eph_cm), int(gps.epv_cm)
