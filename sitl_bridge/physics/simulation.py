@@ -250,6 +250,11 @@ class Simulation:
         if self._collisions:
             self._collisions = []
         vehicles = self._vehicles
+        if len(vehicles) == 1:  # the common case, without the lists below
+            v = vehicles[0]
+            speed = self._read_state(v)
+            self._detect_collisions(v, speed, speed)
+            return
         read_state = self._read_state
         speeds_before = [read_state(v) for v in vehicles]
         # all states first: the vehicle-vehicle test needs every vehicle's new position

@@ -389,9 +389,9 @@ class SensorEstimator:
             if baro is not None and e.origin is not None and dt > 0.0:
                 # PX4 ignores HIL_SENSOR.pressure_alt: height comes from the pressure itself
                 self._baro_update(pressure_altitude_m(baro.pressure_hpa * 100.0), time_us)
-            s = self.state
-            e.position_ned_m = tuple(s[_POS:_POS + 3].tolist())  # type: ignore[assignment]
-            e.velocity_ned_m_s = tuple(s[_VEL:_VEL + 3].tolist())  # type: ignore[assignment]
+            s = self.state.tolist()  # Python floats: numpy elements read slowly one by one
+            e.position_ned_m = (s[_POS], s[_POS + 1], s[_POS + 2])
+            e.velocity_ned_m_s = (s[_VEL], s[_VEL + 1], s[_VEL + 2])
             e.lat_deg, e.lon_deg, e.alt_amsl_m = geodetic(s)
         # like EKF2, report a usable position only once the attitude has aligned
         e.position_valid = aligned and e.origin is not None
