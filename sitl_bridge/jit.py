@@ -52,7 +52,12 @@ def kernel(*uses: ModuleType | Callable[..., Any]) -> Callable[[F], F]:
     """Decorator: a cached numba kernel whose cache also depends on the sources of `uses`."""
 
     def wrap(fn: F) -> F:
-        dispatcher = njit(cache=True)(fn)
+        try:
+            dispatcher = njit(cache=True)(fn)
+        except RuntimeError:  # no writable cache location (read-only install): compile per process
+            dispatcher = njit(cache=False)(fn)
+            dispatcher.sitl_sources = _sources_of(fn)
+            return dispatcher  # type: ignore[return-value]
         sources = frozenset({str(Path(sys.modules[fn.__module__].__file__ or "").resolve())})
         for used in uses:
             sources |= _sources_of(used)
