@@ -132,6 +132,20 @@ def vehicle_wrench(x: np.ndarray, k: np.ndarray, speeds: np.ndarray, u0: float, 
              x[r + 6] * tx + x[r + 7] * ty + x[r + 8] * tz))
 
 
+_WARM = False
+
+
+def _warm_up(v: _Vehicle) -> None:
+    """Load (or compile) the step kernels once per process, on scratch copies, so that the
+    first step is as fast as the others (numba's first use costs about a second)."""
+    global _WARM
+    if not _WARM:
+        x, speeds = v.x.copy(), v.rotors.speeds.copy()
+        vehicle_wrench(x, v.rotors.constants, speeds, 0.0, 0.0, 0.0, 0.0, False)
+        read_state(x, 250.0, 9.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _WARM = True
+
+
 class _Vehicle:
     """Per-vehicle runtime state: the state vector `x` (see `physics.state`) and the position as
     pybullet returned it (a tuple: the contact pre-test reads it every step)."""
@@ -187,6 +201,8 @@ class Simulation:
         self._rng = np.random.default_rng(seed)
         self._cos_crash_tilt = math.cos(math.radians(world.physics.crash_tilt_deg))
         self._build()
+        if self._vehicles:
+            _warm_up(self._vehicles[0])
 
     # -- public API -------------------------------------------------------------------------
     @property

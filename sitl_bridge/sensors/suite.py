@@ -26,7 +26,7 @@ from sitl_bridge.frames import (
 )
 from sitl_bridge.jit import dual, kernel
 from sitl_bridge.physics.simulation import VehicleState
-from sitl_bridge.physics.state import ACCEL, FORCE_FLU, OMEGA_FLU, POS, QUAT, VEL
+from sitl_bridge.physics.state import ACCEL, FORCE_FLU, OMEGA_FLU, POS, QUAT, RAW_SIZE, VEL
 from sitl_bridge.sensors.environment import (
     KELVIN_OFFSET,
     isa_pressure_pa,
@@ -254,6 +254,8 @@ def _clamp(x: float, limit: float) -> float:
     return limit if x > limit else -limit if x < -limit else x
 
 
+_WARM = False  # the `sense` kernel is loaded in this process
+
 # SensorSuite.constants layout (the `sense` kernel's)
 _SIGMA_ACCEL, _SIGMA_GYRO, _SIGMA_MAG, _FIELD_NED = 0, 1, 2, 3
 SENSE_CONSTANTS = 6
@@ -322,6 +324,10 @@ class SensorSuite:
         c[_FIELD_NED:_FIELD_NED + 3] = self._field_ned
         self._seed = seed
         self.reset(seed)
+        global _WARM
+        if not _WARM:  # load (or compile) the kernel now, not at the first sample
+            sense(np.zeros(RAW_SIZE), np.zeros((1, 6)), 0, np.zeros((1, 3)), 0, self.constants)
+            _WARM = True
 
     def reset(self, seed: int | None = None) -> None:
         """Restart the noise streams (re-seeded when `seed` is given) and the sample schedule."""
