@@ -26,6 +26,7 @@ from sitl_bridge.frames import (
 )
 from sitl_bridge.jit import kernel
 from sitl_bridge.physics import iris
+from sitl_bridge.physics import state as state_layout
 from sitl_bridge.physics.bodies import create_ground, create_obstacle, create_vehicle
 from sitl_bridge.physics.bullet import p
 from sitl_bridge.physics.iris import IrisParams, RotorSet, rotor_update_speeds, rotor_wrench
@@ -77,7 +78,7 @@ def _bounding_radius_m(shape: Shape) -> float:
     return 0.5 * math.sqrt(sx * sx + sy * sy + sz * sz)  # a mesh's size is its scaled bounding box
 
 
-@kernel(iris)
+@kernel(iris, state_layout)
 def read_state(x: np.ndarray, inv_dt: float, gravity: float, px: float, py: float, pz: float, qx: float,
                qy: float, qz: float, qw: float, lx: float, ly: float, lz: float, ox: float, oy: float,
                oz: float) -> float:
@@ -113,7 +114,7 @@ def read_state(x: np.ndarray, inv_dt: float, gravity: float, px: float, py: floa
     return speed_before
 
 
-@kernel(iris)
+@kernel(iris, state_layout)
 def vehicle_wrench(x: np.ndarray, k: np.ndarray, speeds: np.ndarray, u0: float, u1: float, u2: float, u3: float,
                    armed: bool) -> tuple[Vec3, Vec3]:
     """The rotors' (force, torque) in world ENU at the centre of mass, from the current rotor

@@ -25,6 +25,7 @@ from sitl_bridge.frames import (
     quat_rotate_inverse_t,
 )
 from sitl_bridge.jit import dual, kernel
+from sitl_bridge.physics import state as state_layout
 from sitl_bridge.physics.simulation import VehicleState
 from sitl_bridge.physics.state import ACCEL, FORCE_FLU, OMEGA_FLU, POS, QUAT, RAW_SIZE, VEL
 from sitl_bridge.sensors.environment import (
@@ -261,7 +262,7 @@ _SIGMA_ACCEL, _SIGMA_GYRO, _SIGMA_MAG, _FIELD_NED = 0, 1, 2, 3
 SENSE_CONSTANTS = 6
 
 
-@kernel(frames)
+@kernel(frames, state_layout)
 def sense(x: np.ndarray, imu_noise: np.ndarray, imu_row: int, mag_noise: np.ndarray, mag_row: int,
           c: np.ndarray) -> tuple[float, ...]:
     """IMU (and, when `mag_row` >= 0, magnetometer) sample of the vehicle state vector `x`
