@@ -199,6 +199,7 @@ class SimSession:
                 break
         with runner.exclusive() as lockstep:
             self.autopilots.restart(lockstep)
+            runner.error = None  # an idle poll of the dead link may have failed meanwhile: old news
 
     def close(self) -> None:
         """Stop the runner, autopilots, links and simulation. Idempotent (partial starts too)."""
