@@ -13,7 +13,8 @@ Conventions used everywhere in sitl-bridge:
 
 The public functions take any 3-/4-sequence (tuple, list, numpy array) and return numpy arrays.
 The `*_xyz` / `*_t` variants take and return plain floats / tuples: they are for the per-step hot
-paths (physics, sensors), where numpy's per-call overhead would dominate.
+paths (physics, sensors), where numpy's per-call overhead would dominate; the `@dual` ones are
+also compiled into the per-step kernels (`sitl_bridge.jit`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+
+from sitl_bridge.jit import dual
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
@@ -36,6 +39,7 @@ Q_FRD_FLU: Quat = (0.0, 1.0, 0.0, 0.0)
 # --------------------------------------------------------------------------------------------
 # vectors: world ENU <-> NED, body FLU <-> FRD (each mapping is its own inverse)
 # --------------------------------------------------------------------------------------------
+@dual
 def enu_to_ned_xyz(x: float, y: float, z: float) -> Vec3:
     """ENU (east, north, up) -> NED (north, east, down), plain floats."""
     return (y, x, -z)
@@ -44,6 +48,7 @@ def enu_to_ned_xyz(x: float, y: float, z: float) -> Vec3:
 ned_to_enu_xyz = enu_to_ned_xyz  # the swap is an involution
 
 
+@dual
 def flu_to_frd_xyz(x: float, y: float, z: float) -> Vec3:
     """FLU (forward, left, up) -> FRD (forward, right, down), plain floats."""
     return (x, -y, -z)
@@ -84,6 +89,7 @@ def yaw_ned_to_enu(yaw_ned_rad: float) -> float:
     return wrap_pi(math.pi / 2.0 - yaw_ned_rad)
 
 
+@dual
 def wrap_pi(angle_rad: float) -> float:
     """Wrap an angle into (-pi, pi] (the one definition; the stub's controllers use it too)."""
     wrapped = math.pi - (math.pi - angle_rad) % (2.0 * math.pi)
@@ -93,6 +99,7 @@ def wrap_pi(angle_rad: float) -> float:
 # --------------------------------------------------------------------------------------------
 # quaternions, plain-float hot path
 # --------------------------------------------------------------------------------------------
+@dual
 def quat_multiply_t(a: Sequence[float], b: Sequence[float]) -> Quat:
     """Hamilton product a * b of two (w, x, y, z) quaternions, plain floats."""
     aw, ax, ay, az = a
@@ -111,6 +118,7 @@ def quat_conjugate_t(q: Sequence[float]) -> Quat:
     return (w, -x, -y, -z)
 
 
+@dual
 def quat_rotate_t(q: Sequence[float], v: Sequence[float]) -> Vec3:
     """Rotate vector v by unit quaternion q (v' = q v q*), plain floats."""
     w, x, y, z = q
@@ -126,12 +134,14 @@ def quat_rotate_t(q: Sequence[float], v: Sequence[float]) -> Vec3:
     )
 
 
+@dual
 def quat_rotate_inverse_t(q: Sequence[float], v: Sequence[float]) -> Vec3:
     """Rotate vector v by the inverse of unit quaternion q (v' = q* v q), plain floats."""
     w, x, y, z = q
     return quat_rotate_t((w, -x, -y, -z), v)
 
 
+@dual
 def quat_enu_flu_to_ned_frd_t(q_enu_flu: Sequence[float]) -> Quat:
     """Attitude ENU/FLU (pybullet) -> NED/FRD (PX4): q_ned_frd = q_NED_ENU * q_enu_flu * q_FRD_FLU^-1.
 
@@ -155,6 +165,7 @@ def quat_ned_frd_to_enu_flu_t(q_ned_frd: Sequence[float]) -> Quat:
     return quat_multiply_t(q, Q_FRD_FLU)
 
 
+@dual
 def quat_to_euler_t(q: Sequence[float]) -> Vec3:
     """(roll, pitch, yaw) in rad, Z-Y-X intrinsic, from a (w, x, y, z) quaternion; plain floats."""
     w, x, y, z = q
@@ -165,6 +176,7 @@ def quat_to_euler_t(q: Sequence[float]) -> Vec3:
     return (roll, pitch, yaw)
 
 
+@dual
 def quat_from_euler_t(roll: float, pitch: float, yaw: float) -> Quat:
     """(w, x, y, z) quaternion from Z-Y-X intrinsic Euler angles in rad; plain floats."""
     cr, sr = math.cos(roll * 0.5), math.sin(roll * 0.5)
@@ -178,6 +190,7 @@ def quat_from_euler_t(roll: float, pitch: float, yaw: float) -> Quat:
     )
 
 
+@dual
 def quat_to_matrix_t(q: Sequence[float]) -> tuple[float, ...]:
     """Row-major 3x3 rotation matrix (9 floats) of a unit (w, x, y, z) quaternion."""
     w, x, y, z = q

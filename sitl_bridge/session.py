@@ -189,8 +189,7 @@ class SimSession:
             raise SessionError(f"the simulation stopped: {error}") from error
 
     def restart_autopilots(self) -> None:
-        """Held: cold-restart every autopilot, simulation untouched: the cure for a fault of
-        `faults()` / `check()`, whose pending lockstep error (the dead link's) is dropped."""
+        """Held: cold-restart every autopilot (simulation untouched), the cure for `faults()`."""
         runner = self._require_runner()
         for _ in range(3):  # the runner may still be failing on the dead link while held
             runner.error = None
@@ -199,6 +198,7 @@ class SimSession:
                 break
         with runner.exclusive() as lockstep:
             self.autopilots.restart(lockstep)
+            runner.error = None  # the dead link's, from an idle poll that failed meanwhile
 
     def close(self) -> None:
         """Stop the runner, autopilots, links and simulation. Idempotent (partial starts too)."""

@@ -1,12 +1,16 @@
 """The Iris quadrotor with PX4's Gazebo-classic parameters (`models/iris/iris.sdf.jinja`,
 `gazebo_motor_model.cpp`): rigid body, four rotors in PX4 quad-X order, motor lag, thrust,
-yaw moment and rotor drag. Pure Python floats: this runs once per vehicle per physics step.
+yaw moment and rotor drag. The per-step math is a compiled kernel (`sitl_bridge.jit`).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+import numpy as np
+
+from sitl_bridge.jit import kernel
 
 Vec3 = tuple[float, float, float]
 
@@ -47,30 +51,48 @@ class IrisParams:
         return (omega - self.zero_position_armed_rad_s) / self.input_scaling_rad_s
 
 
+# RotorSet.constants layout (see `rotor_wrench` / `rotor_update_speeds`)
+_ALPHA_UP, _ALPHA_DOWN, _SCALE, _ZERO, _TOP, _KF, _INV_AIRSPEED, _DRAG = range(8)
+_ROLL_ARMS, _PITCH_ARMS, _YAW_MOMENTS = 8, 12, 16
+ROTOR_CONSTANTS = 20
+
+
 class RotorSet:
     """Four rotors' speed state and the body force/torque they produce.
 
     `wrench` uses the current (previous step's filtered) speeds, as Gazebo's motor model does;
     `update_speeds` then moves them toward the commanded reference with the asymmetric lag.
+    The state (`speeds`) and the constants are float64 arrays for the compiled kernels
+    `rotor_wrench` / `rotor_update_speeds`, which these methods call.
     """
 
     def __init__(self, params: IrisParams, step_s: float) -> None:
         self.params = params
-        self.speeds_rad_s = [0.0, 0.0, 0.0, 0.0]
-        self._alpha_up = math.exp(-step_s / params.time_constant_up_s)
-        self._alpha_down = math.exp(-step_s / params.time_constant_down_s)
-        self._positions = params.rotor_positions_flu_m
-        self._yaw_moment = tuple(-d * params.moment_constant_m for d in params.rotor_directions)
-        # constants of the per-step path, unpacked once (attribute look-ups cost more than the math)
-        self._roll_arms = tuple(r[1] for r in self._positions)     # torque x = sum(y_i T_i)
-        self._pitch_arms = tuple(-r[0] for r in self._positions)   # torque y = -sum(x_i T_i)
-        self._kf = params.motor_constant_n_s2
-        self._inv_max_airspeed = 1.0 / params.max_relative_airspeed_m_s
-        self._drag = -params.rotor_drag_coefficient
-        self._map = (params.input_scaling_rad_s, params.zero_position_armed_rad_s, params.max_rotor_speed_rad_s)
+        self.speeds = np.zeros(4)
+        k = self.constants = np.zeros(ROTOR_CONSTANTS)
+        k[_ALPHA_UP] = math.exp(-step_s / params.time_constant_up_s)
+        k[_ALPHA_DOWN] = math.exp(-step_s / params.time_constant_down_s)
+        k[_SCALE], k[_ZERO] = params.input_scaling_rad_s, params.zero_position_armed_rad_s
+        k[_TOP] = params.max_rotor_speed_rad_s
+        k[_KF] = params.motor_constant_n_s2
+        k[_INV_AIRSPEED] = 1.0 / params.max_relative_airspeed_m_s
+        k[_DRAG] = -params.rotor_drag_coefficient
+        positions = params.rotor_positions_flu_m
+        k[_ROLL_ARMS:_ROLL_ARMS + 4] = [r[1] for r in positions]      # torque x = sum(y_i T_i)
+        k[_PITCH_ARMS:_PITCH_ARMS + 4] = [-r[0] for r in positions]   # torque y = -sum(x_i T_i)
+        k[_YAW_MOMENTS:_YAW_MOMENTS + 4] = [-d * params.moment_constant_m for d in params.rotor_directions]
+
+    @property
+    def speeds_rad_s(self) -> list[float]:
+        """Rotor speeds (rad/s), PX4 motor order; assign a 4-sequence to set them."""
+        return self.speeds.tolist()
+
+    @speeds_rad_s.setter
+    def speeds_rad_s(self, values) -> None:  # noqa: ANN001 - any 4-sequence of numbers
+        self.speeds[:] = [float(w) for w in values]
 
     def reset(self) -> None:
-        self.speeds_rad_s = [0.0, 0.0, 0.0, 0.0]
+        self.speeds[:] = 0.0
 
     def step(self, controls: tuple[float, ...], armed: bool, velocity_flu_m_s: Vec3) -> tuple[Vec3, Vec3]:
         """One physics step: the wrench from the current speeds, then the speeds' update."""
@@ -80,38 +102,47 @@ class RotorSet:
 
     def update_speeds(self, controls: tuple[float, ...], armed: bool) -> None:
         """Advance the motor lag one step toward omega_ref = 1000 u + 100 (armed) or 0."""
-        speeds = self.speeds_rad_s
-        up, down = self._alpha_up, self._alpha_down
-        scale, zero, top = self._map
-        for i in range(4):
-            if armed:
-                u = controls[i]
-                u = u if u > 0.0 else 0.0  # also maps NaN to 0: a bad command must not explode the physics
-                u = 1.0 if u > 1.0 else u
-                ref = u * scale + zero
-                if ref > top:
-                    ref = top
-            else:
-                ref = 0.0
-            w = speeds[i]
-            alpha = up if ref > w else down
-            speeds[i] = alpha * w + (1.0 - alpha) * ref
+        u0, u1, u2, u3 = (float(u) for u in controls)
+        rotor_update_speeds(self.constants, self.speeds, u0, u1, u2, u3, bool(armed))
 
     def wrench(self, velocity_flu_m_s: Vec3) -> tuple[Vec3, Vec3]:
         """(force, torque) on the body in FLU at the centre of mass, from thrust, yaw moment and drag."""
-        vx, vy, vz = velocity_flu_m_s
-        # thrust fades with axial airspeed (Gazebo's maxRelativeAirspeed scaling)
-        fade = 1.0 - abs(vz) * self._inv_max_airspeed
-        kf = self._kf * fade if fade > 0.0 else 0.0
-        # unrolled over the four rotors: this runs every physics step
-        w0, w1, w2, w3 = self.speeds_rad_s
-        t0, t1, t2, t3 = kf * w0 * w0, kf * w1 * w1, kf * w2 * w2, kf * w3 * w3
-        x0, x1, x2, x3 = self._roll_arms
-        y0, y1, y2, y3 = self._pitch_arms
-        z0, z1, z2, z3 = self._yaw_moment
-        # rotor drag opposes the velocity perpendicular to the rotor axes (applied at the CoM:
-        # the moment from the 2 cm rotor height and the 1e-6 rolling moment are negligible)
-        drag = self._drag * (w0 + w1 + w2 + w3)
-        return ((drag * vx, drag * vy, t0 + t1 + t2 + t3),
-                (x0 * t0 + x1 * t1 + x2 * t2 + x3 * t3, y0 * t0 + y1 * t1 + y2 * t2 + y3 * t3,
-                 z0 * t0 + z1 * t1 + z2 * t2 + z3 * t3))
+        vx, vy, vz = (float(v) for v in velocity_flu_m_s)
+        fx, fy, fz, tx, ty, tz = rotor_wrench(self.constants, self.speeds, vx, vy, vz)
+        return (fx, fy, fz), (tx, ty, tz)
+
+
+@kernel()
+def rotor_wrench(k: np.ndarray, speeds: np.ndarray, vx: float, vy: float, vz: float) -> tuple[float, ...]:
+    """(fx, fy, fz, tx, ty, tz) in body FLU from the rotor speeds and the body velocity."""
+    # thrust fades with axial airspeed (Gazebo's maxRelativeAirspeed scaling)
+    fade = 1.0 - abs(vz) * k[_INV_AIRSPEED]
+    kf = k[_KF] * fade if fade > 0.0 else 0.0
+    w0, w1, w2, w3 = speeds[0], speeds[1], speeds[2], speeds[3]
+    t0, t1, t2, t3 = kf * w0 * w0, kf * w1 * w1, kf * w2 * w2, kf * w3 * w3
+    # rotor drag opposes the velocity perpendicular to the rotor axes (applied at the CoM:
+    # the moment from the 2 cm rotor height and the 1e-6 rolling moment are negligible)
+    drag = k[_DRAG] * (w0 + w1 + w2 + w3)
+    r, p, y = _ROLL_ARMS, _PITCH_ARMS, _YAW_MOMENTS
+    return (drag * vx, drag * vy, t0 + t1 + t2 + t3,
+            k[r] * t0 + k[r + 1] * t1 + k[r + 2] * t2 + k[r + 3] * t3,
+            k[p] * t0 + k[p + 1] * t1 + k[p + 2] * t2 + k[p + 3] * t3,
+            k[y] * t0 + k[y + 1] * t1 + k[y + 2] * t2 + k[y + 3] * t3)
+
+
+@kernel()
+def rotor_update_speeds(k: np.ndarray, speeds: np.ndarray, u0: float, u1: float, u2: float, u3: float,
+                        armed: bool) -> None:
+    """Advance the motor lag one step toward omega_ref = scale u + zero (armed) or 0."""
+    for i in range(4):
+        ref = 0.0
+        if armed:
+            u = u0 if i == 0 else u1 if i == 1 else u2 if i == 2 else u3
+            u = u if u > 0.0 else 0.0  # also maps NaN to 0: a bad command must not explode the physics
+            u = 1.0 if u > 1.0 else u
+            ref = u * k[_SCALE] + k[_ZERO]
+            if ref > k[_TOP]:
+                ref = k[_TOP]
+        w = speeds[i]
+        alpha = k[_ALPHA_UP] if ref > w else k[_ALPHA_DOWN]
+        speeds[i] = alpha * w + (1.0 - alpha) * ref

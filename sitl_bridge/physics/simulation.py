@@ -3,8 +3,10 @@ driven by motor commands, obstacles (static and moving) and per-step collision r
 
 World frame ENU, body frame FLU (pybullet's); `VehicleState` offers NED/FRD views through
 `sitl_bridge.frames`. Every pybullet call passes this simulation's client id, so several
-simulations live in one process. The per-step path uses plain floats: numpy's per-call overhead
-would cost more than the physics of one body.
+simulations live in one process. Each vehicle's state is one float64 vector (`physics.state`
+layout) written by the compiled `read_state` kernel and read by the rotor model's and the
+sensors' kernels (`sitl_bridge.jit`); `step` is `begin_step`, `push_wrench` per vehicle and
+`finish_step`, which the fused `direct` loop calls with the wrenches it computed itself.
 """
 
 from __future__ import annotations
@@ -22,11 +24,27 @@ from sitl_bridge.frames import (
     quaternion_to_pybullet,
     yaw_quaternion_enu_flu,
 )
+from sitl_bridge.jit import kernel
+from sitl_bridge.physics import iris
+from sitl_bridge.physics import state as state_layout
 from sitl_bridge.physics.bodies import create_ground, create_obstacle, create_vehicle
 from sitl_bridge.physics.bullet import p
-from sitl_bridge.physics.iris import IrisParams, RotorSet
+from sitl_bridge.physics.iris import IrisParams, RotorSet, rotor_update_speeds, rotor_wrench
 from sitl_bridge.physics.movers import Patrol, RandomLegs, make_mover
-from sitl_bridge.physics.state import Collision, MotorCommand, VehicleState
+from sitl_bridge.physics.state import (
+    ACCEL,
+    FORCE_FLU,
+    OMEGA_FLU,
+    OMEGA_WORLD,
+    POS,
+    QUAT,
+    ROT,
+    STATE_SIZE,
+    VEL,
+    Collision,
+    MotorCommand,
+    VehicleState,
+)
 from sitl_bridge.world.layout import Layout, realize
 from sitl_bridge.world.schema import Shape, World
 
@@ -60,17 +78,89 @@ def _bounding_radius_m(shape: Shape) -> float:
     return 0.5 * math.sqrt(sx * sx + sy * sy + sz * sz)  # a mesh's size is its scaled bounding box
 
 
-class _Vehicle:
-    """Per-vehicle runtime state kept as plain floats for the step loop."""
+@kernel(iris, state_layout)
+def read_state(x: np.ndarray, inv_dt: float, gravity: float, px: float, py: float, pz: float, qx: float,
+               qy: float, qz: float, qw: float, lx: float, ly: float, lz: float, ox: float, oy: float,
+               oz: float) -> float:
+    """Fold pybullet's pose and velocity (world ENU, quaternion x, y, z, w) into the state vector
+    `x`: attitude, rotation matrix, acceleration over the step, specific force and body rates.
+    Returns the speed before the step (m/s), or -1.0 (x untouched) when the state is not finite."""
+    check = px + py + pz + lx + ly + lz
+    if not -1e7 < check < 1e7:  # NaN fails too
+        return -1.0
+    vx0, vy0, vz0 = x[VEL], x[VEL + 1], x[VEL + 2]
+    speed_before = math.sqrt(vx0 * vx0 + vy0 * vy0 + vz0 * vz0)
+    xx, yy, zz, xy, xz, yz = qx * qx, qy * qy, qz * qz, qx * qy, qx * qz, qy * qz
+    wx, wy, wz = qw * qx, qw * qy, qw * qz
+    r00, r01, r02 = 1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)
+    r10, r11, r12 = 2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)
+    r20, r21, r22 = 2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)
+    ax, ay, az = (lx - vx0) * inv_dt, (ly - vy0) * inv_dt, (lz - vz0) * inv_dt
+    fz_world = az + gravity
+    x[POS], x[POS + 1], x[POS + 2] = px, py, pz
+    x[QUAT], x[QUAT + 1], x[QUAT + 2], x[QUAT + 3] = qw, qx, qy, qz
+    x[VEL], x[VEL + 1], x[VEL + 2] = lx, ly, lz
+    x[ACCEL], x[ACCEL + 1], x[ACCEL + 2] = ax, ay, az
+    # specific force and body rates: world vectors rotated into the body (R^T)
+    x[FORCE_FLU] = r00 * ax + r10 * ay + r20 * fz_world
+    x[FORCE_FLU + 1] = r01 * ax + r11 * ay + r21 * fz_world
+    x[FORCE_FLU + 2] = r02 * ax + r12 * ay + r22 * fz_world
+    x[OMEGA_FLU] = r00 * ox + r10 * oy + r20 * oz
+    x[OMEGA_FLU + 1] = r01 * ox + r11 * oy + r21 * oz
+    x[OMEGA_FLU + 2] = r02 * ox + r12 * oy + r22 * oz
+    x[ROT], x[ROT + 1], x[ROT + 2], x[ROT + 3], x[ROT + 4] = r00, r01, r02, r10, r11
+    x[ROT + 5], x[ROT + 6], x[ROT + 7], x[ROT + 8] = r12, r20, r21, r22
+    x[OMEGA_WORLD], x[OMEGA_WORLD + 1], x[OMEGA_WORLD + 2] = ox, oy, oz
+    return speed_before
 
-    __slots__ = ("index", "name", "body", "rotors", "position", "q_wxyz", "rotation", "velocity", "angular_world",
-                 "acceleration", "specific_force_flu", "angular_flu", "on_ground", "cached")
+
+@kernel(iris, state_layout)
+def vehicle_wrench(x: np.ndarray, k: np.ndarray, speeds: np.ndarray, u0: float, u1: float, u2: float, u3: float,
+                   armed: bool) -> tuple[Vec3, Vec3]:
+    """The rotors' (force, torque) in world ENU at the centre of mass, from the current rotor
+    speeds (`iris.rotor_wrench`) and the body velocity; then the speeds' update toward the
+    motor inputs (`iris.rotor_update_speeds`). One physics step of `RotorSet.step` in world axes."""
+    r = ROT
+    vx, vy, vz = x[VEL], x[VEL + 1], x[VEL + 2]
+    # body-frame velocity (R^T v) for rotor drag and the thrust fade
+    fx, fy, fz, tx, ty, tz = rotor_wrench(k, speeds, x[r] * vx + x[r + 3] * vy + x[r + 6] * vz,
+                                          x[r + 1] * vx + x[r + 4] * vy + x[r + 7] * vz,
+                                          x[r + 2] * vx + x[r + 5] * vy + x[r + 8] * vz)
+    rotor_update_speeds(k, speeds, u0, u1, u2, u3, armed)
+    return ((x[r] * fx + x[r + 1] * fy + x[r + 2] * fz, x[r + 3] * fx + x[r + 4] * fy + x[r + 5] * fz,
+             x[r + 6] * fx + x[r + 7] * fy + x[r + 8] * fz),
+            (x[r] * tx + x[r + 1] * ty + x[r + 2] * tz, x[r + 3] * tx + x[r + 4] * ty + x[r + 5] * tz,
+             x[r + 6] * tx + x[r + 7] * ty + x[r + 8] * tz))
+
+
+_WARM = False
+
+
+def _warm_up(v: _Vehicle) -> None:
+    """Load (or compile) the step kernels once per process, on scratch copies, so that the
+    first step is as fast as the others (numba's first use costs about a second)."""
+    global _WARM
+    if not _WARM:
+        x, speeds = v.x.copy(), v.rotors.speeds.copy()
+        vehicle_wrench(x, v.rotors.constants, speeds, 0.0, 0.0, 0.0, 0.0, False)
+        read_state(x, 250.0, 9.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        _WARM = True
+
+
+class _Vehicle:
+    """Per-vehicle runtime state: the state vector `x` (see `physics.state`) and the position as
+    pybullet returned it (a tuple: the contact pre-test reads it every step)."""
+
+    __slots__ = ("index", "name", "body", "rotors", "x", "position", "on_ground", "cached")
 
     def __init__(self, index: int, name: str, rotors: RotorSet) -> None:
         self.index = index
         self.name = name
         self.rotors = rotors
         self.body = -1
+        self.x = np.zeros(STATE_SIZE)
+        self.position: Vec3 = (0.0, 0.0, 0.0)
+        self.on_ground = False
         self.cached: VehicleState | None = None
 
 
@@ -112,6 +202,8 @@ class Simulation:
         self._rng = np.random.default_rng(seed)
         self._cos_crash_tilt = math.cos(math.radians(world.physics.crash_tilt_deg))
         self._build()
+        if self._vehicles:
+            _warm_up(self._vehicles[0])
 
     # -- public API -------------------------------------------------------------------------
     @property
@@ -139,38 +231,49 @@ class Simulation:
         vehicles = self._vehicles
         if len(commands) != len(vehicles):
             raise ValueError(f"expected {len(vehicles)} motor commands, got {len(commands)}")
+        self.begin_step()
+        push = self.push_wrench
+        for v, cmd in zip(vehicles, commands, strict=False):  # lengths checked above
+            u0, u1, u2, u3 = cmd.controls
+            rotors = v.rotors
+            force, torque = vehicle_wrench(v.x, rotors.constants, rotors.speeds, float(u0), float(u1), float(u2),
+                                           float(u3), bool(cmd.armed))
+            push(v.index, force, torque)
+        self.finish_step()
+
+    def begin_step(self) -> None:
+        """First part of `step`: place the moving obstacles for this step."""
         cid = self.client_id
-        movers = self._movers
-        for body, mover in movers:
+        for body, mover in self._movers:
             pose = mover.pose()
             p.resetBasePositionAndOrientation(body, pose.position_m, self._facing(pose.yaw_rad, pose.pitch_rad),
                                               physicsClientId=cid)
             p.resetBaseVelocity(body, pose.velocity_m_s, (0.0, 0.0, 0.0), physicsClientId=cid)
-        speeds_before = []
-        for v, cmd in zip(vehicles, commands, strict=False):  # lengths checked above
-            r00, r01, r02, r10, r11, r12, r20, r21, r22 = v.rotation
-            vx, vy, vz = v.velocity
-            speeds_before.append(math.sqrt(vx * vx + vy * vy + vz * vz))  # for the collision report
-            # body-frame velocity (R^T v) for rotor drag and the thrust fade; the wrench from the
-            # current rotor speeds, then the speeds' update (RotorSet.step, one call less)
-            rotors = v.rotors
-            (fx, fy, fz), (tx, ty, tz) = rotors.wrench(
-                (r00 * vx + r10 * vy + r20 * vz, r01 * vx + r11 * vy + r21 * vz, r02 * vx + r12 * vy + r22 * vz))
-            rotors.update_speeds(cmd.controls, cmd.armed)
-            body = v.body
-            _apply_force(body, -1, (r00 * fx + r01 * fy + r02 * fz, r10 * fx + r11 * fy + r12 * fz,
-                                    r20 * fx + r21 * fy + r22 * fz), v.position, _WORLD_FRAME, physicsClientId=cid)
-            _apply_torque(body, -1, (r00 * tx + r01 * ty + r02 * tz, r10 * tx + r11 * ty + r12 * tz,
-                                     r20 * tx + r21 * ty + r22 * tz), _WORLD_FRAME, physicsClientId=cid)
-        _step_simulation(physicsClientId=cid)
+
+    def push_wrench(self, vehicle: int, force_enu_n: Vec3, torque_enu_n_m: Vec3) -> None:
+        """Second part of `step`, once per vehicle: apply the rotors' world-frame force and
+        torque (`vehicle_wrench`, which also advanced the rotor speeds) at the centre of mass."""
+        v = self._vehicles[vehicle]
+        cid = self.client_id
+        _apply_force(v.body, -1, force_enu_n, v.position, _WORLD_FRAME, physicsClientId=cid)
+        _apply_torque(v.body, -1, torque_enu_n_m, _WORLD_FRAME, physicsClientId=cid)
+
+    def finish_step(self) -> None:
+        """Last part of `step`: the pybullet step, time, movers, every vehicle's state, collisions."""
+        _step_simulation(physicsClientId=self.client_id)
         self.time_us += self.step_us
-        for _, mover in movers:
+        for _, mover in self._movers:
             mover.advance(self.step_s)
         if self._collisions:
             self._collisions = []
+        vehicles = self._vehicles
+        if len(vehicles) == 1:  # the common case, without the lists below
+            v = vehicles[0]
+            speed = self._read_state(v)
+            self._detect_collisions(v, speed, speed)
+            return
         read_state = self._read_state
-        for v in vehicles:
-            read_state(v)
+        speeds_before = [read_state(v) for v in vehicles]
         # all states first: the vehicle-vehicle test needs every vehicle's new position
         top_speed = max(speeds_before)
         detect = self._detect_collisions
@@ -181,15 +284,22 @@ class Simulation:
         """The vehicle's state after the last step (or at spawn before the first step)."""
         v = self._vehicles[vehicle]
         if v.cached is None:
-            v.cached = VehicleState._from_tuples(
-                (v.position, v.q_wxyz, v.velocity, v.angular_flu, v.specific_force_flu, v.acceleration),
-                tuple(v.rotors.speeds_rad_s), v.on_ground)
+            v.cached = VehicleState._from_vector(v.x.copy(), tuple(v.rotors.speeds.tolist()), v.on_ground)
         return v.cached
+
+    def vehicle_vector(self, vehicle: int) -> np.ndarray:
+        """The vehicle's live state vector (`physics.state` layout), updated in place every
+        step: for compiled per-step kernels (the fused `direct` loop). Do not modify it."""
+        return self._vehicles[vehicle].x
+
+    def rotors(self, vehicle: int) -> RotorSet:
+        """The vehicle's rotor model (its `speeds` and `constants` vectors live as long as the simulation)."""
+        return self._vehicles[vehicle].rotors
 
     def pose(self, vehicle: int) -> tuple[Vec3, tuple[float, float, float, float]]:
         """Fast path: (position ENU m, quaternion ENU/FLU (w, x, y, z)) as plain tuples."""
         v = self._vehicles[vehicle]
-        return v.position, v.q_wxyz
+        return v.position, tuple(v.x[QUAT:QUAT + 4].tolist())  # type: ignore[return-value]
 
     def collisions(self) -> list[Collision]:
         """Collisions detected during the last step."""
@@ -229,9 +339,9 @@ class Simulation:
                                           physicsClientId=self.client_id)
         p.resetBaseVelocity(v.body, velocity, (0.0, 0.0, 0.0), physicsClientId=self.client_id)
         if rotor_speeds_rad_s is not None:
-            v.rotors.speeds_rad_s = [float(w) for w in rotor_speeds_rad_s]
+            v.rotors.speeds_rad_s = rotor_speeds_rad_s
         self._init_state(v)
-        v.velocity = velocity
+        v.x[VEL:VEL + 3] = velocity
 
     def hover_rotor_speeds_rad_s(self) -> list[float]:
         """Rotor speeds whose thrust balances the weight (for `place_vehicle`)."""
@@ -333,49 +443,29 @@ class Simulation:
     def _init_state(self, v: _Vehicle) -> None:
         """State at rest (no step taken yet): accelerometer reads +g along world up."""
         pos, orn = p.getBasePositionAndOrientation(v.body, physicsClientId=self.client_id)
+        q = (orn[3], orn[0], orn[1], orn[2])
+        x = v.x
+        x[:] = 0.0
+        x[POS:POS + 3] = pos
+        x[QUAT:QUAT + 4] = q
+        x[ROT:ROT + 9] = quat_to_matrix_t(q)
+        x[FORCE_FLU:FORCE_FLU + 3] = quat_rotate_inverse_t(q, (0.0, 0.0, self.gravity_m_s2))
         v.position = pos
-        v.q_wxyz = (orn[3], orn[0], orn[1], orn[2])
-        v.rotation = quat_to_matrix_t(v.q_wxyz)
-        v.velocity = (0.0, 0.0, 0.0)
-        v.angular_world = (0.0, 0.0, 0.0)
-        v.angular_flu = (0.0, 0.0, 0.0)
-        v.acceleration = (0.0, 0.0, 0.0)
-        v.specific_force_flu = quat_rotate_inverse_t(v.q_wxyz, (0.0, 0.0, self.gravity_m_s2))
         v.on_ground = False
         v.cached = None
 
-    def _read_state(self, v: _Vehicle) -> None:
+    def _read_state(self, v: _Vehicle) -> float:
+        """Read the vehicle's new state from pybullet (`read_state`); the speed before the step."""
         cid = self.client_id
         pos, orn = _get_pose(v.body, physicsClientId=cid)
         lin, ang = _get_velocity(v.body, physicsClientId=cid)
-        check = pos[0] + pos[1] + pos[2] + lin[0] + lin[1] + lin[2]
-        if not -1e7 < check < 1e7:  # NaN fails too
+        speed = read_state(v.x, self._inv_step_s, self.gravity_m_s2, *pos, *orn, *lin, *ang)
+        if speed < 0.0:
             raise PhysicsError(f"vehicle {v.name}: state is no longer finite (position {pos}, velocity {lin})"
                                "; reset the simulation")
-        x, y, z, w = orn
-        # quat_to_matrix_t written out (once per vehicle per step)
-        xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
-        rotation = (r00, r01, r02, r10, r11, r12, r20, r21, r22) = (
-            1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy),
-            2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx),
-            2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy))
-        inv_dt = self._inv_step_s
-        old = v.velocity
-        ax, ay, az = (lin[0] - old[0]) * inv_dt, (lin[1] - old[1]) * inv_dt, (lin[2] - old[2]) * inv_dt
-        fz_world = az + self.gravity_m_s2
-        ox, oy, oz = ang
         v.position = pos
-        v.q_wxyz = (w, x, y, z)
-        v.rotation = rotation
-        v.velocity = lin
-        v.angular_world = ang
-        v.acceleration = (ax, ay, az)
-        # specific force and body rates: world vectors rotated into the body (R^T)
-        v.specific_force_flu = (r00 * ax + r10 * ay + r20 * fz_world, r01 * ax + r11 * ay + r21 * fz_world,
-                                r02 * ax + r12 * ay + r22 * fz_world)
-        v.angular_flu = (r00 * ox + r10 * oy + r20 * oz, r01 * ox + r11 * oy + r21 * oz,
-                         r02 * ox + r12 * oy + r22 * oz)
         v.cached = None
+        return speed
 
     def _may_touch(self, v: _Vehicle, margin_m: float, vehicle_margin_m: float) -> bool:
         """Cheap bounding-volume test: could the vehicle touch anything? (getContactPoints is a
@@ -419,7 +509,7 @@ class Simulation:
             kind, name = self._body_kind.get(other, ("obstacle", f"body{other}"))
             if kind == "ground":
                 v.on_ground = True
-                w, x, y, _ = v.q_wxyz
+                x, y = float(v.x[QUAT + 1]), float(v.x[QUAT + 2])
                 cos_tilt = 1.0 - 2.0 * (x * x + y * y)  # body z axis . world up
                 if speed_m_s <= self.world.physics.hard_ground_speed_m_s and cos_tilt >= self._cos_crash_tilt:
                     continue

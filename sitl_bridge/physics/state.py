@@ -47,6 +47,15 @@ class Collision:
     time_us: int
 
 
+# One vehicle's state vector (float64), as `Simulation` keeps it and the compiled per-step
+# kernels read it: the six `VehicleState.raw` groups in their order, then what the rotor model
+# needs (the body-to-world rotation matrix, row-major, and the world angular velocity).
+POS, QUAT, VEL, OMEGA_FLU, FORCE_FLU, ACCEL, ROT, OMEGA_WORLD = 0, 3, 7, 10, 13, 16, 19, 28
+STATE_SIZE = 31
+RAW_SIZE = ROT
+"""The leading part that `VehicleState.raw` covers (position ... acceleration)."""
+
+
 def _readonly(values) -> np.ndarray:
     array = np.array(values, dtype=float)
     array.flags.writeable = False
@@ -67,7 +76,7 @@ class VehicleState:
         def floats(values) -> tuple[float, ...]:
             return tuple(float(c) for c in values)
 
-        self.raw: tuple[tuple[float, ...], ...] = (
+        self.__dict__["raw"] = (
             floats(position_enu_m), floats(quaternion_enu_flu), floats(velocity_enu_m_s),
             floats(angular_velocity_flu_rad_s), floats(specific_force_flu_m_s2), floats(acceleration_enu_m_s2))
         self._rotor_speeds = floats(rotor_speeds_rad_s)
@@ -80,6 +89,31 @@ class VehicleState:
         state._rotor_speeds = rotor_speeds
         state.on_ground = on_ground
         return state
+
+    @classmethod
+    def _from_vector(cls, vector: np.ndarray, rotor_speeds: tuple[float, ...], on_ground: bool) -> VehicleState:
+        """From a private copy of the simulation's state vector (`raw` is built on first use)."""
+        state = cls.__new__(cls)
+        state.__dict__["vector"] = vector
+        state._rotor_speeds = rotor_speeds
+        state.on_ground = on_ground
+        return state
+
+    @cached_property
+    def raw(self) -> tuple[tuple[float, ...], ...]:  # set directly unless built from a vector
+        """(position, quaternion, velocity, angular velocity, specific force, acceleration) as
+        plain-float tuples (ENU / FLU)."""
+        v = self.vector.tolist()
+        return (tuple(v[0:3]), tuple(v[3:7]), tuple(v[7:10]), tuple(v[10:13]), tuple(v[13:16]), tuple(v[16:19]))
+
+    @cached_property
+    def vector(self) -> np.ndarray:
+        """The `raw` groups as one float64 vector (the layout at the top of this module), for the
+        compiled kernels (`SensorSuite`). Do not modify it."""
+        vector = np.zeros(RAW_SIZE)
+        for start, values in zip((POS, QUAT, VEL, OMEGA_FLU, FORCE_FLU, ACCEL), self.raw, strict=True):
+            vector[start:start + len(values)] = values
+        return vector
 
     def __repr__(self) -> str:
         names = ("position_enu_m", "quaternion_enu_flu", "velocity_enu_m_s", "angular_velocity_flu_rad_s",

@@ -3,6 +3,11 @@
 One `update(frame)` per lockstep step turns a SensorFrame into a MotorCommand, the way PX4
 turns a HIL_SENSOR into a HIL_ACTUATOR_CONTROLS. The MAVLink API layer and the `direct` env
 backend drive it through the commander methods (arm, takeoff, set_velocity_setpoint_ned, ...).
+
+Per step: the estimator, then `prepare` (commander, and the position loop at ~125 Hz through
+the compiled `outer_loop_kernel`), then the attitude + rate loops and the mixer in one compiled
+call (`inner_loop_kernel`, the `inner_loop` function that the fused `direct` loop compiles in
+too). The controllers' state lives in their float64 vectors (`sitl_bridge.jit`).
 """
 
 from __future__ import annotations
@@ -11,12 +16,33 @@ import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
+import numpy as np
+
+from sitl_bridge import frames
+from sitl_bridge.jit import dual, kernel
 from sitl_bridge.physics.simulation import MotorCommand
 
+from . import control, mixer, vec
 from .commander import Commander, Home, OffboardSetpoint, Output
-from .control import AttitudeControl, PositionControl, RateControl, Setpoint, body_z_to_attitude
-from .estimator import Estimate, GroundTruthEstimator, SensorEstimator
-from .mixer import QuadGeometry, QuadXMixer
+from .control import (
+    AttitudeControl,
+    PositionControl,
+    RateControl,
+    Setpoint,
+    attitude_control,
+    body_z_to_attitude,
+    idle_thrust,
+    position_control,
+    rate_control,
+)
+from .estimator import (
+    GRAVITY_M_S2,
+    Estimate,
+    GroundTruthEstimator,
+    SensorEstimator,
+    estimator_imu_step,
+)
+from .mixer import QuadGeometry, QuadXMixer, mix
 from .modes import CommandResult, LandedState, system_id_for
 from .params import ParamTable
 
@@ -24,6 +50,8 @@ if TYPE_CHECKING:
     from sitl_bridge.sensors import SensorFrame
 
 _NAN = float("nan")
+_WARM = False  # the kernels are loaded in this process (StubAutopilot.warm_up)
+
 #: period of the position/velocity loop (the attitude and rate loops run every step); it runs on
 #: the step nearest to each period, whatever the physics step, and integrates the time that
 #: actually passed (8 ms: every 2nd step at 4 ms, every 4th at 2 ms, every 3rd at 3 ms)
@@ -41,6 +69,58 @@ def _armed_command(controls: tuple[float, float, float, float]) -> MotorCommand:
     _set_fields(command, "controls", controls)
     _set_fields(command, "armed", True)
     return command
+
+
+# StubAutopilot.control layout: collective thrust, attitude setpoint (w, x, y, z), motor outputs
+_THRUST, _Q_SP, _OUTPUTS = 0, 1, 5
+CONTROL_STATE = 9
+
+
+@dual
+def outer_loop(ctl: np.ndarray, pc_state: np.ndarray, pc_gains: np.ndarray, dt_s: float, psp: tuple, vff: tuple,
+               up_max: float, down_max: float, pos: tuple, vel: tuple, acc: tuple, maybe_landed: bool,
+               yaw: float) -> None:
+    """Position/velocity control -> collective thrust and attitude setpoint (into `ctl`)."""
+    thr = position_control(pc_state, pc_gains, dt_s, psp, vff, up_max, down_max, pos, vel, acc)
+    if maybe_landed:
+        # PX4 drops the thrust to idle when it suspects a landing: confirms or refutes it
+        thr = idle_thrust(pc_state, pc_gains)
+    ctl[_THRUST] = math.sqrt(thr[0] * thr[0] + thr[1] * thr[1] + thr[2] * thr[2])
+    ctl[_Q_SP], ctl[_Q_SP + 1], ctl[_Q_SP + 2], ctl[_Q_SP + 3] = body_z_to_attitude((-thr[0], -thr[1], -thr[2]), yaw)
+
+
+@kernel(frames, vec, control)
+def outer_loop_kernel(ctl: np.ndarray, pc_state: np.ndarray, pc_gains: np.ndarray, dt_s: float, sp0: float,
+                      sp1: float, sp2: float, ff0: float, ff1: float, ff2: float, up_max: float, down_max: float,
+                      p0: float, p1: float, p2: float, v0: float, v1: float, v2: float, a0: float, a1: float,
+                      a2: float, maybe_landed: bool, yaw: float) -> None:
+    """`outer_loop`, compiled (plain float arguments: numba types tuples slowly)."""
+    outer_loop(ctl, pc_state, pc_gains, dt_s, (sp0, sp1, sp2), (ff0, ff1, ff2), up_max, down_max, (p0, p1, p2),
+               (v0, v1, v2), (a0, a1, a2), maybe_landed, yaw)
+
+
+@dual
+def inner_loop(ctl: np.ndarray, att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray,
+               mix_constants: np.ndarray, mix_state: np.ndarray, q: tuple, rates: tuple, yaw_rate_ff: float,
+               dt_s: float, landed: bool) -> tuple[float, float, float, float]:
+    """Attitude P -> body-rate PID -> mixer: the motor outputs (also into `ctl`)."""
+    rate_sp = attitude_control(att_gains, q, (ctl[_Q_SP], ctl[_Q_SP + 1], ctl[_Q_SP + 2], ctl[_Q_SP + 3]),
+                               yaw_rate_ff)
+    torque = rate_control(rate_state, rate_gains, dt_s, rates, rate_sp, mix_state[0] != 0.0, landed)
+    u = mix(mix_constants, mix_state, ctl[_THRUST], torque)
+    o = _OUTPUTS
+    ctl[o], ctl[o + 1], ctl[o + 2], ctl[o + 3] = u
+    return u
+
+
+@kernel(frames, vec, control, mixer)
+def inner_loop_kernel(ctl: np.ndarray, att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray,
+                      mix_constants: np.ndarray, mix_state: np.ndarray, qw: float, qx: float, qy: float, qz: float,
+                      wx: float, wy: float, wz: float, yaw_rate_ff: float, dt_s: float,
+                      landed: bool) -> tuple[float, float, float, float]:
+    """`inner_loop`, compiled."""
+    return inner_loop(ctl, att_gains, rate_state, rate_gains, mix_constants, mix_state, (qw, qx, qy, qz),
+                      (wx, wy, wz), yaw_rate_ff, dt_s, landed)
 
 
 class StubAutopilot:
@@ -66,12 +146,36 @@ class StubAutopilot:
         self.position_control = PositionControl(self.params)
         self.attitude_control = AttitudeControl(self.params)
         self.rate_control = RateControl(self.params)
-        self.last_command: MotorCommand = _OFF
-        self.thrust_collective = 0.0
-        self.attitude_setpoint: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+        self.control = np.zeros(CONTROL_STATE)
+        self.control[_Q_SP] = 1.0
+        self._command: MotorCommand | None = _OFF
+        self._gains_version = -1
+        self._yaw_rate_ff = 0.0
         self.steps = 0
         self._last_time_us: int | None = None
         self._position_last_us: int | None = None  # the outer loop's last run
+        self.warm_up()
+
+    def warm_up(self) -> None:
+        """Load (or, with a cold cache, compile) the compiled kernels now, on scratch copies of
+        the state, so that the first lockstep step answers as fast as the others (numba's
+        first use in a process costs about a second)."""
+        global _WARM
+        if _WARM:
+            return
+        self.refresh_gains()
+        estimator = SensorEstimator()
+        estimator_imu_step(estimator.state, estimator.gains, 0.0, 0.0, -GRAVITY_M_S2, 0.0, 0.0, 0.0, True, 0.2, 0.0,
+                           0.4, 0.004, 4000)
+        ctl, pc = self.control.copy(), self.position_control
+        nan3 = (_NAN, _NAN, _NAN)
+        zero3 = (0.0, 0.0, 0.0)
+        outer_loop_kernel(ctl, pc.state.copy(), pc.gains, 0.004, *zero3, *nan3, _NAN, _NAN, *zero3, *zero3, *zero3,
+                          False, 0.0)
+        inner_loop_kernel(ctl, self.attitude_control.gains, self.rate_control.state.copy(), self.rate_control.gains,
+                          self.mixer.constants, self.mixer.state.copy(), 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.004,
+                          False)
+        _WARM = True
 
     def reset(self) -> None:
         """Reboot in place, as PX4 after `reboot` on a vehicle whose sensors keep running:
@@ -82,7 +186,8 @@ class StubAutopilot:
         time; the next `update` may come at any time (an in-place simulation reset).
 
         The same object stays in place, so the HIL client and MAVLink API that refer to it
-        carry on. A new StubAutopilot is the cold boot (ALIGN_S).
+        carry on. A new StubAutopilot is the cold boot (ALIGN_S). The controllers are new
+        objects with new vectors (a fused loop that holds them takes them again).
         """
         time_us = self.commander.time_us
         self.estimator.reset()
@@ -92,30 +197,87 @@ class StubAutopilot:
         self.position_control = PositionControl(self.params)
         self.attitude_control = AttitudeControl(self.params)
         self.rate_control = RateControl(self.params)
-        self.last_command = _OFF
-        self.thrust_collective = 0.0
-        self.attitude_setpoint = (1.0, 0.0, 0.0, 0.0)
+        self._gains_version = -1
+        self._command = _OFF
+        self.control[:] = 0.0
+        self.control[_Q_SP] = 1.0
         self._last_time_us = None
         self._position_last_us = None
+
+    # --- controller state as attributes ------------------------------------------------------
+    @property
+    def last_command(self) -> MotorCommand:
+        """The motor command of the last step."""
+        if self._command is None:  # the fused `direct` loop leaves the outputs in `control`
+            o = _OUTPUTS
+            self._command = _armed_command(tuple(self.control[o:o + 4].tolist()))  # type: ignore[arg-type]
+        return self._command
+
+    @property
+    def thrust_collective(self) -> float:
+        """Collective thrust setpoint (fraction of full thrust) of the position loop."""
+        return float(self.control[_THRUST])
+
+    @property
+    def attitude_setpoint(self) -> tuple[float, float, float, float]:
+        """Attitude setpoint (w, x, y, z; NED/FRD) of the position loop."""
+        return tuple(self.control[_Q_SP:_Q_SP + 4].tolist())  # type: ignore[return-value]
+
+    def refresh_gains(self) -> None:
+        """Reload the controllers' gain vectors if a parameter changed (cheap when none did)."""
+        if self._gains_version != self.params.version:
+            self.position_control.refresh_gains()
+            self.attitude_control.refresh_gains()
+            self.rate_control.refresh_gains()
+            self._gains_version = self.params.version
 
     # --- lockstep ----------------------------------------------------------------------------
     def update(self, frame: SensorFrame) -> MotorCommand:
         """Estimate, run the commander and the control cascade for one step; motor outputs."""
         est = self.estimator.update(frame)
-        time_us = frame.time_us
+        dt_s = self.prepare(est)
+        if dt_s is None:
+            return self._command  # type: ignore[return-value]
+        yaw_rate_ff = self._yaw_rate_ff
+        qw, qx, qy, qz = est.quaternion_ned_frd
+        wx, wy, wz = est.angular_velocity_frd_rad_s
+        u = inner_loop_kernel(self.control, self.attitude_control.gains, self.rate_control.state,
+                              self.rate_control.gains, self.mixer.constants, self.mixer.state, float(qw), float(qx),
+                              float(qy), float(qz), float(wx), float(wy), float(wz), yaw_rate_ff, dt_s,
+                              self.commander.landed)
+        self._command = command = _armed_command(u)
+        return command
+
+    @property
+    def yaw_rate_ff(self) -> float:
+        """The yaw-rate feed-forward (rad/s) of this step's setpoint, for `inner_loop`."""
+        return self._yaw_rate_ff
+
+    def outputs_in_control(self) -> None:
+        """Record that this step's motor outputs were computed by a caller's own compiled
+        `inner_loop` (the fused `direct` loop): `last_command` reads them from `control`."""
+        self._command = None
+
+    def prepare(self, est: Estimate) -> float | None:
+        """The commander and the position loop for this step's estimate. Returns the step (s)
+        when the inner loop must run (`inner_loop`, with `yaw_rate_ff`), or None when the
+        motors are off or idle (`last_command` is then set)."""
+        time_us = est.time_us
         last = self._last_time_us
         dt_s = 0.0 if last is None or time_us <= last else (time_us - last) * 1e-6
         self._last_time_us = time_us
         self.steps += 1
+        if self._gains_version != self.params.version:
+            self.refresh_gains()
         commander = self.commander
-        output, sp = commander.step(est, self.thrust_collective)
+        output, sp = commander.step(est, float(self.control[_THRUST]))
         if output is not _FLY:
             self.position_control.reset()
             self.rate_control.reset()
-            self.thrust_collective = 0.0
+            self.control[_THRUST] = 0.0
             self._position_last_us = None
-            self.last_command = _IDLE if output is Output.IDLE else _OFF
-            return self.last_command
+            self._command = _IDLE if output is Output.IDLE else _OFF
+            return None
 
         last_run = self._position_last_us
         step_us = time_us - last if last is not None else 0
@@ -128,26 +290,19 @@ class StubAutopilot:
         yaw_rate_ff = sp.yaw_rate_rad_s
         if yaw_rate_ff != yaw_rate_ff:  # NaN: no feed-forward
             yaw_rate_ff = 0.0
-        rate_sp = self.attitude_control.update(est.quaternion_ned_frd, self.attitude_setpoint, yaw_rate_ff)
-        mixer = self.mixer
-        torque = self.rate_control.update(dt_s, est.angular_velocity_frd_rad_s, rate_sp,
-                                          mixer.saturated, commander.landed)
-        self.last_command = command = _armed_command(mixer.mix(self.thrust_collective, torque))
-        return command
+        self._yaw_rate_ff = float(yaw_rate_ff)
+        return dt_s
 
     def _outer_loop(self, est: Estimate, sp: Setpoint, dt_s: float) -> None:
         """Position/velocity control -> collective thrust and attitude setpoint."""
-        pc = self.position_control
-        thr = pc.update(dt_s, sp, est.position_ned_m, est.velocity_ned_m_s, est.accel_ned_m_s2)
-        if self.commander.maybe_landed:
-            # PX4 drops the thrust to idle when it suspects a landing: confirms or refutes it
-            pc.reset()
-            thr = (0.0, 0.0, -self.params["MPC_THR_MIN"])
         yaw = sp.yaw_rad
         if yaw != yaw:
             yaw = est.euler_rad[2]
-        self.thrust_collective = math.sqrt(thr[0] * thr[0] + thr[1] * thr[1] + thr[2] * thr[2])
-        self.attitude_setpoint = body_z_to_attitude((-thr[0], -thr[1], -thr[2]), yaw)
+        pc = self.position_control
+        # setpoints are floats (the commander sanitises them), the estimate too
+        outer_loop_kernel(self.control, pc.state, pc.gains, dt_s, *sp.position_ned_m, *sp.velocity_ned_m_s,
+                          float(sp.max_velocity_up_m_s), float(sp.max_velocity_down_m_s), *est.position_ned_m,
+                          *est.velocity_ned_m_s, *est.accel_ned_m_s2, self.commander.maybe_landed, float(yaw))
 
     # --- commander -----------------------------------------------------------------------------
     def arm(self) -> CommandResult:

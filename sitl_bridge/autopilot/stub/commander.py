@@ -311,7 +311,7 @@ class Commander:
             self._set_home(e)
         if not self.armed:
             return Output.OFF, self._last_setpoint
-        if self.main_mode == _OFFBOARD_MAIN:  # the failsafe only concerns OFFBOARD (one call less otherwise)
+        if self.main_mode == _OFFBOARD_MAIN and not self._offboard_fresh():  # only OFFBOARD can lose its signal
             self._offboard_failsafe()
         sp = self._setpoint(e)
         self._last_setpoint = sp
@@ -378,8 +378,9 @@ class Commander:
         v = e.velocity_ned_m_s
         descend_commanded = _finite(sp.velocity_ned_m_s[2]) and sp.velocity_ned_m_s[2] > 0.3 * vz_limit \
             or (_finite(sp.position_ned_m[2]) and sp.position_ned_m[2] > e.position_ned_m[2] + 0.5)
-        still = abs(v[2]) < 0.6 * vz_limit and math.hypot(v[0], v[1]) < p["LNDMC_XY_VEL_MAX"]
-        contact = descend_commanded and still
+        # no motion test unless a descent is commanded (the common case in flight: one test)
+        contact = descend_commanded and abs(v[2]) < 0.6 * vz_limit \
+            and math.hypot(v[0], v[1]) < p["LNDMC_XY_VEL_MAX"]
         if not contact:
             self.ground_contact = self.maybe_landed = False
             self._contact_since_us = self._maybe_since_us = None

@@ -22,10 +22,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sitl_bridge import frames
+from sitl_bridge.jit import dual, kernel
 from sitl_bridge.sensors import GroundTruth
 from sitl_bridge.sensors.environment import magnetic_field_ned_gauss, pressure_altitude_m
 from sitl_bridge.world.schema import GeoHome
 
+from . import vec
 from .vec import (
     Quat,
     Vec3,
@@ -93,18 +96,40 @@ def _floats(v) -> tuple[float, ...] | list[float]:
         return [float(x) for x in v]
 
 
+# GroundTruthEstimator.state layout: the origin in the truth's NED, metres per degree of
+# latitude and longitude there, the origin's (lat deg, lon deg, alt m AMSL)
+_GT_ORIGIN_NED, _GT_M_PER_DEG, _GT_ORIGIN = 0, 3, 5
+GROUND_TRUTH_STATE = 8
+
+
+@dual
+def relative_estimate(g, q: Quat, rates: Vec3, vel: Vec3, acc: Vec3, px: float, py: float,  # noqa: ANN001
+                      pz: float) -> tuple[Quat, Vec3, Vec3, Vec3, Vec3, float, float, float]:
+    """The ground-truth estimate around the origin in `g` (`GroundTruthEstimator.state`, as an
+    array or a tuple): (attitude, rates, position, velocity, acceleration, lat, lon, alt AMSL).
+    The geodetic position comes from the local one around the origin, as `SensorEstimator`
+    does (cm-exact over an env's workspace; a projection per step would cost more)."""
+    north, east, down = px - g[_GT_ORIGIN_NED], py - g[_GT_ORIGIN_NED + 1], pz - g[_GT_ORIGIN_NED + 2]
+    return (q, rates, (north, east, down), vel, acc, g[_GT_ORIGIN] + north / g[_GT_M_PER_DEG],
+            g[_GT_ORIGIN + 1] + east / g[_GT_M_PER_DEG + 1], g[_GT_ORIGIN + 2] - down)
+
+
 class GroundTruthEstimator:
-    """Estimate = SensorFrame.truth. Labelled as such: PX4 never sees ground truth."""
+    """Estimate = SensorFrame.truth. Labelled as such: PX4 never sees ground truth.
+
+    The origin lives in the float64 `state` vector (`relative_estimate`, which the fused
+    `direct` loop compiles in) once `has_origin`."""
 
     def __init__(self) -> None:
         self.estimate = Estimate()
-        self._origin_ned: Vec3 | None = None
-        self._m_per_deg = (1.0, 1.0)   # metres per degree of latitude, longitude at the origin
+        self.state = np.zeros(GROUND_TRUTH_STATE)
+        self._origin: tuple[float, ...] = tuple(self.state.tolist())
+        self.has_origin = False
 
     def reset(self) -> None:
         """Forget everything: the next frame's truth is the new origin."""
         self.estimate = Estimate()
-        self._origin_ned = None
+        self.has_origin = False
 
     def update(self, frame: SensorFrame) -> Estimate:
         """Copy the truth of this frame into the estimate."""
@@ -116,29 +141,22 @@ class GroundTruthEstimator:
         # `raw`: the truth as plain-float tuples (quaternion, rates, velocity, accel, position);
         # the numpy views would cost more to build than this whole update
         q, rates, vel, acc, (px, py, pz) = t.raw
-        if self._origin_ned is None:
-            self._origin_ned = (px, py, pz)
+        if not self.has_origin:
             e.origin = (t.lat_e7 * 1e-7, t.lon_e7 * 1e-7, t.alt_mm * 1e-3)  # geodetic only once
-            self._m_per_deg = (math.radians(EARTH_RADIUS_M),
-                               math.radians(EARTH_RADIUS_M * math.cos(math.radians(e.origin[0]))))
-        o = self._origin_ned
-        e.time_us = frame.time_us
-        north, east, down = px - o[0], py - o[1], pz - o[2]
-        e.position_ned_m = (north, east, down)
-        e.velocity_ned_m_s = vel
-        e.accel_ned_m_s2 = acc
-        e.quaternion_ned_frd = q
-        e.angular_velocity_frd_rad_s = rates
-        # geodetic position from the local one around the origin, as `SensorEstimator` does
-        # (cm-exact over an env's workspace; a projection per step would cost more)
-        lat0, lon0, alt0 = e.origin  # type: ignore[misc]
-        m_lat, m_lon = self._m_per_deg
-        e.lat_deg = lat0 + north / m_lat
-        e.lon_deg = lon0 + east / m_lon
-        e.alt_amsl_m = alt0 - down
+            self.state[:] = (px, py, pz, math.radians(EARTH_RADIUS_M),
+                             math.radians(EARTH_RADIUS_M * math.cos(math.radians(e.origin[0]))), *e.origin)
+            self._origin = tuple(self.state.tolist())
+            self.has_origin = True
+        return self.finish(relative_estimate(self._origin, q, rates, vel, acc, px, py, pz), frame.time_us, frame.gps)
+
+    def finish(self, values: tuple, time_us: int, gps=None) -> Estimate:  # noqa: ANN001
+        """The estimate from `relative_estimate`'s values (and the frame's GPS, if any)."""
+        e = self.estimate
+        e.time_us = time_us
+        (e.quaternion_ned_frd, e.angular_velocity_frd_rad_s, e.position_ned_m, e.velocity_ned_m_s,
+         e.accel_ned_m_s2, e.lat_deg, e.lon_deg, e.alt_amsl_m) = values
         e.attitude_valid = True
         e.position_valid = True
-        gps = frame.gps
         if gps is not None:
             e.gps_fix_type, e.gps_satellites = int(gps.fix_type), int(gps.satellites)
             e.gps_eph_cm, e.gps_epv_cm = int(gps.eph_cm), int(gps.epv_cm)
@@ -150,8 +168,136 @@ class GroundTruthEstimator:
         return e
 
 
+# SensorEstimator.state layout (float64): attitude, gyro bias, position, velocity, accelerometer
+# bias (NED), low-passed kinematic acceleration, GPS-derived acceleration, bias-corrected rates,
+# declination, end of the alignment (us; NaN before the first step), flags, the origin
+_Q, _GYRO_BIAS, _POS, _VEL, _ACC_BIAS, _ACCEL_LP, _GPS_ACCEL, _RATES = 0, 4, 7, 10, 13, 16, 19, 22
+_DECLINATION, _ALIGN_UNTIL_US, _HAS_Q, _HAS_ORIGIN, _ORIGIN, _LON_RADIUS = 25, 26, 27, 28, 29, 32
+ESTIMATOR_STATE = 33
+# SensorEstimator.gains layout
+_ACC_KP, _MAG_KP, _GYRO_BIAS_KI, _ALIGN_BOOST, _ALIGN_S = range(5)
+
+
+@dual
+def initial_attitude(ax: float, ay: float, az: float, has_mag: bool, mx: float, my: float, mz: float) -> Quat:
+    """Roll/pitch from gravity; yaw from the magnetometer (heading relative to the field)."""
+    roll = math.atan2(-ay, -az)
+    pitch = math.atan2(ax, math.hypot(ay, az))
+    yaw = 0.0
+    if has_mag:
+        q_rp = quat_from_euler(roll, pitch, 0.0)
+        m = quat_rotate(q_rp, (mx, my, mz))
+        yaw = -math.atan2(m[1], m[0])
+    return quat_from_euler(roll, pitch, yaw)
+
+
+@kernel(frames, vec)
+def estimator_imu_step(s: np.ndarray, k: np.ndarray, ax: float, ay: float, az: float, gx: float, gy: float,
+                       gz: float, has_mag: bool, mx: float, my: float, mz: float, dt: float, time_us: int
+                       ) -> tuple[Quat, Vec3, Vec3, Vec3, Vec3, float, float, float, bool]:
+    """One IMU (+ magnetometer) sample folded into the estimator state `s`: the complementary
+    attitude filter, then the accelerometer's prediction of velocity and position. Returns the
+    estimate's (attitude, rates, position, velocity, acceleration, lat, lon, alt AMSL) before any
+    GPS / baro correction of this step (`SensorEstimator.finish`), and whether the initial
+    alignment is over."""
+    w0, w1, w2 = gx - s[_GYRO_BIAS], gy - s[_GYRO_BIAS + 1], gz - s[_GYRO_BIAS + 2]
+    s[_RATES], s[_RATES + 1], s[_RATES + 2] = w0, w1, w2
+    if s[_HAS_Q] == 0.0:
+        q0 = initial_attitude(ax, ay, az, has_mag, mx, my, mz)
+        s[_Q], s[_Q + 1], s[_Q + 2], s[_Q + 3] = q0
+        s[_HAS_Q] = 1.0
+    if dt > 0.0:
+        _attitude_step(s, k, dt, ax, ay, az, w0, w1, w2, has_mag, mx, my, mz, time_us)
+    q = (s[_Q], s[_Q + 1], s[_Q + 2], s[_Q + 3])
+    # kinematic acceleration in NED = R f + g
+    fn, fe, fd = quat_rotate(q, (ax, ay, az))
+    an, ae, ad = fn - s[_ACC_BIAS], fe - s[_ACC_BIAS + 1], fd + GRAVITY_M_S2 - s[_ACC_BIAS + 2]
+    if s[_HAS_ORIGIN] != 0.0 and dt > 0.0:
+        half_dt = 0.5 * dt
+        p, v = _POS, _VEL
+        s[p] += (s[v] + an * half_dt) * dt
+        s[p + 1] += (s[v + 1] + ae * half_dt) * dt
+        s[p + 2] += (s[v + 2] + ad * half_dt) * dt
+        s[v] += an * dt
+        s[v + 1] += ae * dt
+        s[v + 2] += ad * dt
+    lp = _ACCEL_LP
+    s[lp] += 0.2 * (an - s[lp])
+    s[lp + 1] += 0.2 * (ae - s[lp + 1])
+    s[lp + 2] += 0.2 * (ad - s[lp + 2])
+    return (q, (w0, w1, w2), (s[_POS], s[_POS + 1], s[_POS + 2]), (s[_VEL], s[_VEL + 1], s[_VEL + 2]),
+            (s[lp], s[lp + 1], s[lp + 2])) + geodetic(s) + (time_us >= s[_ALIGN_UNTIL_US],)  # NaN: False
+
+
+@dual
+def attitude_and_rates(s: np.ndarray) -> tuple[Quat, Vec3]:
+    """The estimator state's attitude and bias-corrected body rates (what the inner loop uses)."""
+    return (s[_Q], s[_Q + 1], s[_Q + 2], s[_Q + 3]), (s[_RATES], s[_RATES + 1], s[_RATES + 2])
+
+
+@dual
+def geodetic(s: np.ndarray) -> tuple[float, float, float]:
+    """(lat deg, lon deg, alt m AMSL) of the estimated position around the origin (0s without one)."""
+    if s[_HAS_ORIGIN] == 0.0:
+        return 0.0, 0.0, 0.0
+    return (s[_ORIGIN] + math.degrees(s[_POS] / EARTH_RADIUS_M), s[_ORIGIN + 1] + math.degrees(s[_POS + 1] / s[_LON_RADIUS]),
+            s[_ORIGIN + 2] - s[_POS + 2])
+
+
+@dual
+def _attitude_step(s: np.ndarray, k: np.ndarray, dt: float, ax: float, ay: float, az: float, w0: float, w1: float,
+                   w2: float, has_mag: bool, mx: float, my: float, mz: float, time_us: int) -> None:
+    qw, qx, qy, qz = s[_Q], s[_Q + 1], s[_Q + 2], s[_Q + 3]
+    q = (qw, qx, qy, qz)
+    cx = cy = cz = 0.0   # attitude correction (body rates)
+    if s[_ALIGN_UNTIL_US] != s[_ALIGN_UNTIL_US]:  # NaN: the first step
+        s[_ALIGN_UNTIL_US] = time_us + int(k[_ALIGN_S] * 1e6)
+    boost = k[_ALIGN_BOOST] if time_us < s[_ALIGN_UNTIL_US] else 1.0
+    a_norm = math.sqrt(ax * ax + ay * ay + az * az)
+    # trust the accelerometer's gravity direction only near 1 g
+    rx, ry, rz = s[_GPS_ACCEL], s[_GPS_ACCEL + 1], s[_GPS_ACCEL + 2] - GRAVITY_M_S2   # expected specific force, NED
+    ref_norm = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if 0.5 * GRAVITY_M_S2 < a_norm < 1.5 * GRAVITY_M_S2 and ref_norm > 1.0:
+        nx, ny, nz = ax / a_norm, ay / a_norm, az / a_norm  # measured: specific force points up
+        ex, ey, ez = quat_rotate_inverse(q, (rx / ref_norm, ry / ref_norm, rz / ref_norm))
+        # error = measured x estimated
+        g = k[_ACC_KP] * boost
+        cx = g * (ny * ez - nz * ey)
+        cy = g * (nz * ex - nx * ez)
+        cz = g * (nx * ey - ny * ex)
+    if has_mag:
+        m_ned = quat_rotate(q, (mx, my, mz))
+        # heading error about world down, applied in body frame
+        heading_err = wrap_pi(s[_DECLINATION] - math.atan2(m_ned[1], m_ned[0]))
+        # world down in the body: quat_rotate_inverse(q, (0, 0, 1)) written out
+        g = k[_MAG_KP] * boost * heading_err
+        cx += 2.0 * (qx * qz - qw * qy) * g
+        cy += 2.0 * (qy * qz + qw * qx) * g
+        cz += (1.0 - 2.0 * (qx * qx + qy * qy)) * g
+    ki = k[_GYRO_BIAS_KI]
+    s[_GYRO_BIAS] -= ki * cx * dt
+    s[_GYRO_BIAS + 1] -= ki * cy * dt
+    s[_GYRO_BIAS + 2] -= ki * cz * dt
+    wx, wy, wz = w0 + cx, w1 + cy, w2 + cz
+    h = 0.5 * dt
+    # integrate, then quat_normalize written out (w stays positive for small steps; the
+    # sign flip keeps quat_normalize's convention when it does not)
+    nw = qw + h * (-qx * wx - qy * wy - qz * wz)
+    nx = qx + h * (qw * wx + qy * wz - qz * wy)
+    ny = qy + h * (qw * wy - qx * wz + qz * wx)
+    nz = qz + h * (qw * wz + qx * wy - qy * wx)
+    n = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    if nw < 0.0:
+        n = -n
+    s[_Q], s[_Q + 1], s[_Q + 2], s[_Q + 3] = nw / n, nx / n, ny / n, nz / n
+
+
 class SensorEstimator:
-    """Complementary attitude filter + GPS/baro/accelerometer position filter."""
+    """Complementary attitude filter + GPS/baro/accelerometer position filter.
+
+    The per-step part (attitude filter, accelerometer prediction) is the compiled kernel
+    `estimator_imu_step` on the float64 `state` vector; the GPS and baro corrections (5 Hz,
+    50 Hz) are Python on the same vector (`finish`). The fused `direct` loop calls both."""
 
     # attitude: proportional / integral correction gains (1/s, 1/s^2)
     ACC_KP = 0.4
@@ -175,25 +321,21 @@ class SensorEstimator:
     def __init__(self, align_s: float | None = None) -> None:
         self.align_s = self.ALIGN_S if align_s is None else float(align_s)
         self.estimate = Estimate()
-        self._q: Quat | None = None
-        self._gyro_bias = [0.0, 0.0, 0.0]
-        self._pos = [0.0, 0.0, 0.0]
-        self._vel = [0.0, 0.0, 0.0]
-        self._acc_bias_ned = [0.0, 0.0, 0.0]
-        self._last_time_us: int | None = None
+        if not hasattr(self, "state"):  # arrays kept over resets (callers may hold them)
+            self.state = np.zeros(ESTIMATOR_STATE)
+            self.gains = np.zeros(5)
+        self.state[:] = 0.0
+        self.state[_ALIGN_UNTIL_US] = math.nan
+        self.state[_LON_RADIUS] = EARTH_RADIUS_M
+        g = self.gains
+        g[_ACC_KP], g[_MAG_KP], g[_GYRO_BIAS_KI] = self.ACC_KP, self.MAG_KP, self.GYRO_BIAS_KI
+        g[_ALIGN_BOOST], g[_ALIGN_S] = self.ALIGN_BOOST, self.align_s
+        self.last_time_us: int | None = None
         self._baro_offset_m: float | None = None   # baro altitude - GPS altitude at origin
         self._last_baro_us: int | None = None
         self._last_baro_alt_m: float | None = None
         self._baro_offset_samples = 0
-        self._align_until_us: int | None = None
-        self._accel_lp: Vec3 = (0.0, 0.0, 0.0)
-        # kinematic acceleration from GPS velocity differences: the accelerometer measures
-        # gravity minus this, so the tilt correction must not mistake it for a tilt
-        self._gps_accel_ned = [0.0, 0.0, 0.0]
         self._last_gps: tuple[int, Vec3] | None = None
-        self._declination_rad = 0.0   # known once the origin is: heading = field heading + this
-        self._lon_radius_origin: tuple[float, float, float] | None = None
-        self._lon_radius_m = EARTH_RADIUS_M
 
     def reset(self, align_s: float | None = None) -> None:
         """Re-initialise from the next sensor samples, as after a reboot of a running vehicle,
@@ -210,156 +352,81 @@ class SensorEstimator:
         over: the vehicle may have moved, and a reset re-draws the sensor noise."""
         self.__init__(self.WARM_ALIGN_S if align_s is None else align_s)  # type: ignore[misc]
 
+    def step_dt(self, time_us: int) -> float:
+        """Seconds since the previous sample (0 for the first); records `time_us`."""
+        last = self.last_time_us
+        self.last_time_us = time_us
+        return 0.0 if last is None else (time_us - last) * 1e-6
+
     def update(self, frame: SensorFrame) -> Estimate:
         """Fold one SensorFrame into the estimate."""
         time_us = frame.time_us
-        dt = 0.0 if self._last_time_us is None else (time_us - self._last_time_us) * 1e-6
-        self._last_time_us = time_us
-        acc_b = frame.accel_frd_m_s2
+        dt = self.step_dt(time_us)
         # Python floats: numpy arrays (SensorSuite) index slowly; tuples (HIL client) pass as they are
-        acc_b = acc_b if type(acc_b) is tuple else tuple(_floats(acc_b))
-        gyro = frame.gyro_frd_rad_s
-        gx, gy, gz = gyro if type(gyro) is tuple else _floats(gyro)
-        gb = self._gyro_bias
-        w = (gx - gb[0], gy - gb[1], gz - gb[2])
-        if self._q is None:
-            self._q = self._initial_attitude(acc_b, frame.mag_frd_gauss)
-        if dt > 0.0:
-            self._attitude_step(dt, acc_b, w, frame.mag_frd_gauss, time_us)
-        q = self._q
+        ax, ay, az = _floats(frame.accel_frd_m_s2)
+        gx, gy, gz = _floats(frame.gyro_frd_rad_s)
+        mag = frame.mag_frd_gauss
+        if mag is None:
+            has_mag, mx, my, mz = False, 0.0, 0.0, 0.0
+        else:
+            has_mag = True
+            mx, my, mz = _floats(mag)
+        values = estimator_imu_step(self.state, self.gains, float(ax), float(ay), float(az), float(gx), float(gy),
+                                    float(gz), has_mag, float(mx), float(my), float(mz), dt, time_us)
+        return self.finish(values, time_us, dt, frame.gps, frame.baro)
+
+    def finish(self, values: tuple, time_us: int, dt: float, gps, baro) -> Estimate:  # noqa: ANN001
+        """The step's estimate from `estimator_imu_step`'s values, with this step's GPS and baro
+        samples (None when none) folded in."""
         e = self.estimate
         e.time_us = time_us
-        e.quaternion_ned_frd = q
-        e.angular_velocity_frd_rad_s = w
+        (e.quaternion_ned_frd, e.angular_velocity_frd_rad_s, e.position_ned_m, e.velocity_ned_m_s,
+         e.accel_ned_m_s2, e.lat_deg, e.lon_deg, e.alt_amsl_m, aligned) = values
         e.attitude_valid = True
-
-        # kinematic acceleration in NED = R f + g
-        fn, fe, fd = quat_rotate(q, acc_b)
-        ab = self._acc_bias_ned
-        an, ae, ad = fn - ab[0], fe - ab[1], fd + GRAVITY_M_S2 - ab[2]
-        pos, vel = self._pos, self._vel
-        if e.origin is not None and dt > 0.0:
-            half_dt = 0.5 * dt
-            pos[0] += (vel[0] + an * half_dt) * dt
-            pos[1] += (vel[1] + ae * half_dt) * dt
-            pos[2] += (vel[2] + ad * half_dt) * dt
-            vel[0] += an * dt
-            vel[1] += ae * dt
-            vel[2] += ad * dt
-        lp = self._accel_lp
-        self._accel_lp = (lp[0] + 0.2 * (an - lp[0]), lp[1] + 0.2 * (ae - lp[1]), lp[2] + 0.2 * (ad - lp[2]))
-
-        gps = frame.gps
-        if gps is not None:
-            self._gps_update(e, gps)
-        baro = frame.baro
-        if baro is not None and e.origin is not None and dt > 0.0:
-            # PX4 ignores HIL_SENSOR.pressure_alt: height comes from the pressure itself
-            self._baro_update(pressure_altitude_m(baro.pressure_hpa * 100.0), time_us)
-
-        # the GPS update may have replaced the lists
-        pos, vel = self._pos, self._vel
+        if gps is not None or baro is not None:
+            if gps is not None:
+                self._gps_update(e, gps)
+            if baro is not None and e.origin is not None and dt > 0.0:
+                # PX4 ignores HIL_SENSOR.pressure_alt: height comes from the pressure itself
+                self._baro_update(pressure_altitude_m(baro.pressure_hpa * 100.0), time_us)
+            s = self.state.tolist()  # Python floats: numpy elements read slowly one by one
+            e.position_ned_m = (s[_POS], s[_POS + 1], s[_POS + 2])
+            e.velocity_ned_m_s = (s[_VEL], s[_VEL + 1], s[_VEL + 2])
+            e.lat_deg, e.lon_deg, e.alt_amsl_m = geodetic(s)
         # like EKF2, report a usable position only once the attitude has aligned
-        e.position_valid = e.origin is not None and self._align_until_us is not None \
-            and time_us >= self._align_until_us
-        e.position_ned_m = (pos[0], pos[1], pos[2])
-        e.velocity_ned_m_s = (vel[0], vel[1], vel[2])
-        e.accel_ned_m_s2 = self._accel_lp
-        origin = e.origin
-        if origin is not None:
-            lat0, lon0, alt0 = origin
-            if self._lon_radius_origin is not origin:  # the cosine once per origin, not per step
-                self._lon_radius_origin = origin
-                self._lon_radius_m = EARTH_RADIUS_M * math.cos(math.radians(lat0))
-            e.lat_deg = lat0 + math.degrees(pos[0] / EARTH_RADIUS_M)
-            e.lon_deg = lon0 + math.degrees(pos[1] / self._lon_radius_m)
-            e.alt_amsl_m = alt0 - pos[2]
+        e.position_valid = aligned and e.origin is not None
         return e
 
-    # --- attitude ----------------------------------------------------------------------
-    def _initial_attitude(self, acc_b: Vec3, mag) -> Quat:
-        # roll/pitch from gravity; yaw from the magnetometer (heading relative to the field)
-        roll = math.atan2(-acc_b[1], -acc_b[2])
-        pitch = math.atan2(acc_b[0], math.hypot(acc_b[1], acc_b[2]))
-        yaw = 0.0
-        if mag is not None:
-            q_rp = quat_from_euler(roll, pitch, 0.0)
-            m = quat_rotate(q_rp, (float(mag[0]), float(mag[1]), float(mag[2])))
-            yaw = -math.atan2(m[1], m[0])
-        return quat_from_euler(roll, pitch, yaw)
-
-    def _attitude_step(self, dt: float, acc_b: Vec3, w: Vec3, mag, time_us: int) -> None:
-        q = self._q
-        cx = cy = cz = 0.0   # attitude correction (body rates)
-        if self._align_until_us is None:
-            self._align_until_us = time_us + int(self.align_s * 1e6)
-        boost = self.ALIGN_BOOST if time_us < self._align_until_us else 1.0
-        ax, ay, az = acc_b
-        a_norm = math.sqrt(ax * ax + ay * ay + az * az)
-        # trust the accelerometer's gravity direction only near 1 g
-        ga = self._gps_accel_ned
-        rx, ry, rz = ga[0], ga[1], ga[2] - GRAVITY_M_S2   # expected specific force, NED
-        ref_norm = math.sqrt(rx * rx + ry * ry + rz * rz)
-        if 0.5 * GRAVITY_M_S2 < a_norm < 1.5 * GRAVITY_M_S2 and ref_norm > 1.0:
-            mx, my, mz = ax / a_norm, ay / a_norm, az / a_norm  # measured: specific force points up
-            ex, ey, ez = quat_rotate_inverse(q, (rx / ref_norm, ry / ref_norm, rz / ref_norm))
-            # error = measured x estimated
-            k = self.ACC_KP * boost
-            cx = k * (my * ez - mz * ey)
-            cy = k * (mz * ex - mx * ez)
-            cz = k * (mx * ey - my * ex)
-        qw, qx, qy, qz = q
-        if mag is not None:
-            m_ned = quat_rotate(q, _floats(mag))
-            # heading error about world down, applied in body frame
-            heading_err = wrap_pi(self._declination_rad - math.atan2(m_ned[1], m_ned[0]))
-            # world down in the body: quat_rotate_inverse(q, (0, 0, 1)) written out
-            k = self.MAG_KP * boost * heading_err
-            cx += 2.0 * (qx * qz - qw * qy) * k
-            cy += 2.0 * (qy * qz + qw * qx) * k
-            cz += (1.0 - 2.0 * (qx * qx + qy * qy)) * k
-        gb = self._gyro_bias
-        ki = self.GYRO_BIAS_KI
-        gb[0] -= ki * cx * dt
-        gb[1] -= ki * cy * dt
-        gb[2] -= ki * cz * dt
-        wx, wy, wz = w[0] + cx, w[1] + cy, w[2] + cz
-        h = 0.5 * dt
-        # integrate, then quat_normalize written out (w stays positive for small steps; the
-        # sign flip keeps quat_normalize's convention when it does not)
-        nw = qw + h * (-qx * wx - qy * wy - qz * wz)
-        nx = qx + h * (qw * wx + qy * wz - qz * wy)
-        ny = qy + h * (qw * wy - qx * wz + qz * wx)
-        nz = qz + h * (qw * wz + qx * wy - qy * wx)
-        n = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        if nw < 0.0:
-            n = -n
-        self._q = (nw / n, nx / n, ny / n, nz / n)
-
-    # --- position ----------------------------------------------------------------------
+    # --- position (GPS, baro: Python on the state vector) ---------------------------------
     def _gps_update(self, e: Estimate, gps) -> None:
         e.gps_fix_type, e.gps_satellites = int(gps.fix_type), int(gps.satellites)
         e.gps_eph_cm, e.gps_epv_cm = int(gps.eph_cm), int(gps.epv_cm)
         if gps.fix_type < self.MIN_GPS_FIX or gps.satellites < self.MIN_GPS_SATELLITES:
             return
+        s = self.state
         lat, lon, alt = gps.lat_e7 * 1e-7, gps.lon_e7 * 1e-7, gps.alt_mm * 1e-3
         vel = (gps.vn_cm_s * 0.01, gps.ve_cm_s * 0.01, gps.vd_cm_s * 0.01)
         if self._last_gps is not None and e.time_us > self._last_gps[0]:
             dt_gps = (e.time_us - self._last_gps[0]) * 1e-6
             prev = self._last_gps[1]
             for k in range(3):
-                self._gps_accel_ned[k] += 0.5 * ((vel[k] - prev[k]) / dt_gps - self._gps_accel_ned[k])
+                a = float(s[_GPS_ACCEL + k])
+                s[_GPS_ACCEL + k] = a + 0.5 * ((vel[k] - prev[k]) / dt_gps - a)
         self._last_gps = (e.time_us, vel)
         if e.origin is None:
             e.origin = (lat, lon, alt)
-            self._pos = [0.0, 0.0, 0.0]
-            self._vel = list(vel)
+            s[_HAS_ORIGIN] = 1.0
+            s[_ORIGIN:_ORIGIN + 3] = e.origin
+            s[_LON_RADIUS] = EARTH_RADIUS_M * math.cos(math.radians(lat))
+            s[_POS:_POS + 3] = 0.0
+            s[_VEL:_VEL + 3] = vel
             # true heading = magnetic heading + declination (PX4 looks it up in the WMM too)
             n, east, _ = magnetic_field_ned_gauss(GeoHome(lat_deg=lat, lon_deg=lon, alt_m=alt))
-            self._declination_rad = math.atan2(east, n)
-            if self._q is not None:
-                half = 0.5 * self._declination_rad
-                self._q = quat_normalize(quat_multiply((math.cos(half), 0.0, 0.0, math.sin(half)), self._q))
+            declination = s[_DECLINATION] = math.atan2(east, n)
+            if s[_HAS_Q] != 0.0:
+                half = 0.5 * declination
+                q = tuple(s[_Q:_Q + 4].tolist())
+                s[_Q:_Q + 4] = quat_normalize(quat_multiply((math.cos(half), 0.0, 0.0, math.sin(half)), q))
             return
         lat0, lon0, alt0 = e.origin
         meas = (
@@ -373,24 +440,28 @@ class SensorEstimator:
             gain = 1.0 / n if n <= self.BARO_OFFSET_SAMPLES else self.BARO_OFFSET_GAIN
             self._baro_offset_m += gain * (self._last_baro_alt_m + meas[2] - self._baro_offset_m)
         # horizontal from GPS; vertical position from baro (PX4 EKF2_HGT_REF=baro), velocity from GPS
+        pos, v, bias = s[_POS:_POS + 3].tolist(), s[_VEL:_VEL + 3].tolist(), s[_ACC_BIAS:_ACC_BIAS + 3].tolist()
         for k in range(3):
             if k < 2 or self._baro_offset_m is None:
-                ep = meas[k] - self._pos[k]
-                self._pos[k] += self.GPS_POS_GAIN * ep
-                self._vel[k] += self.GPS_POS_TO_VEL * ep
-            ev = vel[k] - self._vel[k]
-            self._vel[k] += self.GPS_VEL_GAIN * ev
-            self._acc_bias_ned[k] -= self.ACC_BIAS_GAIN * ev
+                ep = meas[k] - pos[k]
+                pos[k] += self.GPS_POS_GAIN * ep
+                v[k] += self.GPS_POS_TO_VEL * ep
+            ev = vel[k] - v[k]
+            v[k] += self.GPS_VEL_GAIN * ev
+            bias[k] -= self.ACC_BIAS_GAIN * ev
+        s[_POS:_POS + 3], s[_VEL:_VEL + 3], s[_ACC_BIAS:_ACC_BIAS + 3] = pos, v, bias
 
     def _baro_update(self, pressure_alt_m: float, time_us: int) -> None:
+        s = self.state
         last = self._last_baro_us
         self._last_baro_us = time_us
         self._last_baro_alt_m = pressure_alt_m
+        z = float(s[_POS + 2])
         if self._baro_offset_m is None or last is None:
-            self._baro_offset_m = pressure_alt_m + self._pos[2]   # baro alt at local z = 0
+            self._baro_offset_m = pressure_alt_m + z   # baro alt at local z = 0
             return
         dt = min(max(time_us - last, 0) * 1e-6, 0.5)
         z_baro = self._baro_offset_m - pressure_alt_m
-        ez = z_baro - self._pos[2]
-        self._pos[2] += min(1.0, self.BARO_GAIN_PER_S * dt) * ez
-        self._vel[2] += min(1.0, self.BARO_VEL_GAIN_PER_S * dt) * ez
+        ez = z_baro - z
+        s[_POS + 2] = z + min(1.0, self.BARO_GAIN_PER_S * dt) * ez
+        s[_VEL + 2] += min(1.0, self.BARO_VEL_GAIN_PER_S * dt) * ez

@@ -1,7 +1,8 @@
 """Tiny pure-python vector and quaternion helpers for the stub's per-step math.
 
 The controller runs once per 4 ms lockstep step on 3-vectors; plain tuples and floats are
-several times faster than numpy at that size. Quaternions are (w, x, y, z), Hamilton
+several times faster than numpy at that size. The `@dual` ones compile into the per-step kernels
+too (`sitl_bridge.jit`). Quaternions are (w, x, y, z), Hamilton
 convention, rotating body (FRD) vectors into the world (NED) frame.
 """
 
@@ -17,6 +18,7 @@ from sitl_bridge.frames import quat_multiply_t as quat_multiply
 from sitl_bridge.frames import quat_rotate_t as quat_rotate
 from sitl_bridge.frames import quat_to_euler_t as quat_to_euler
 from sitl_bridge.frames import wrap_pi
+from sitl_bridge.jit import dual
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
@@ -28,16 +30,19 @@ __all__ = [
 ]
 
 
+@dual
 def norm(v: Vec3) -> float:
     """Euclidean length."""
     return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
 
+@dual
 def clamp(value: float, low: float, high: float) -> float:
     """value limited to [low, high]."""
     return low if value < low else high if value > high else value
 
 
+@dual
 def quat_conjugate_multiply(a: Quat, b: Quat) -> Quat:
     """conjugate(a) * b (the rotation from a to b) without building the conjugate."""
     aw, ax, ay, az = a
@@ -50,6 +55,7 @@ def quat_conjugate_multiply(a: Quat, b: Quat) -> Quat:
     )
 
 
+@dual
 def quat_normalize(q: Quat) -> Quat:
     """Unit quaternion with positive w (the shorter of the two equivalent rotations)."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -58,6 +64,7 @@ def quat_normalize(q: Quat) -> Quat:
     return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
+@dual
 def quat_rotate_inverse(q: Quat, v: Vec3) -> Vec3:
     """Rotate v by the inverse of q (world -> body when q is the attitude)."""
     # quat_rotate with the conjugate (x, y, z negated) written out: one call, not two
@@ -73,12 +80,14 @@ def quat_rotate_inverse(q: Quat, v: Vec3) -> Vec3:
     )
 
 
+@dual
 def quat_yaw(q: Quat) -> float:
     """Heading (yaw) in rad of an attitude quaternion."""
     w, x, y, z = q
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
+@dual
 def quat_from_two_vectors(src: Vec3, dst: Vec3) -> Quat:
     """Shortest rotation taking unit vector src onto unit vector dst."""
     cx = src[1] * dst[2] - src[2] * dst[1]

@@ -13,6 +13,16 @@ Estimator (`estimator=`, see `base.ESTIMATORS`): `sensors` (default) samples eve
 ground-truth frame (`SensorSuite.truth_frame`: no sensor simulation, no noise) for the stub's
 `GroundTruthEstimator`, the same estimator the `stub` backend then runs on HIL_STATE_QUATERNION.
 
+Fused loop: per vehicle and step, two compiled calls composed from the components' own
+kernels, with no frame or command objects: `sense_and_estimate` (the suite's IMU/mag `sense`,
+then the estimator's `estimator_imu_step`; with `ground_truth`, `truth_estimate`: the suite's
+`truth_of_vector`, then the ground-truth estimator's `relative_estimate`) and, after the Python
+commander and position loop (`StubAutopilot.prepare`), `control_and_rotors` (the stub's
+`inner_loop`, then the simulation's `vehicle_wrench`). Baro and GPS (`SensorSuite.slow_samples`)
+and their estimator updates (`SensorEstimator.finish`) stay Python at their 50 / 5 Hz. The
+result is the same computation as `StubAutopilot.update(SensorSuite.sample(...))` (or
+`truth_frame`) + `Simulation.step`, in the same order, bit for bit.
+
 Reset: in place, the same steps as `SimSession.reset` for in-process stubs: the simulation
 re-spawned from the episode's seed (time 0), sensor noise re-seeded (`sensor_seed`), every
 autopilot rebooted with `StubAutopilot.reset` (the short warm alignment; the autopilots are
@@ -26,14 +36,24 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from sitl_bridge.autopilot.modes import HOLD, MainMode, custom_mode
-from sitl_bridge.autopilot.stub.autopilot import StubAutopilot
+from sitl_bridge.autopilot.stub.autopilot import StubAutopilot, inner_loop, inner_loop_kernel
+from sitl_bridge.autopilot.stub.estimator import (
+    ESTIMATOR_STATE,
+    GROUND_TRUTH_STATE,
+    attitude_and_rates,
+    estimator_imu_step,
+    relative_estimate,
+)
 from sitl_bridge.autopilot.stub.modes import CommandResult, LandedState
 from sitl_bridge.autopilot.stub.params import ParamTable
 from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, Snapshot
 from sitl_bridge.envs.options import EnvOptions
+from sitl_bridge.jit import kernel
 from sitl_bridge.physics import MotorCommand, Simulation
+from sitl_bridge.physics.simulation import vehicle_wrench
 from sitl_bridge.sensors import SensorSuite, sensor_seed
 from sitl_bridge.sensors.lidar import Lidar
+from sitl_bridge.sensors.suite import sense, truth_of_vector
 from sitl_bridge.world import World
 from sitl_bridge.world.clock import whole_steps
 
@@ -42,6 +62,39 @@ SETPOINT_PERIOD_S = 0.05
 
 
 _HOLD_MODE = custom_mode(*HOLD)
+
+
+@kernel(sense, estimator_imu_step)
+def sense_and_estimate(x: np.ndarray, imu_noise: np.ndarray, imu_row: int, mag_noise: np.ndarray, mag_row: int,
+                       sense_constants: np.ndarray, est_state: np.ndarray, est_gains: np.ndarray, dt: float,
+                       time_us: int) -> tuple:
+    """`SensorSuite.sample`'s IMU/mag part, then `SensorEstimator.update`'s per-step part."""
+    a0, a1, a2, g0, g1, g2, m0, m1, m2 = sense(x, imu_noise, imu_row, mag_noise, mag_row, sense_constants)
+    return estimator_imu_step(est_state, est_gains, a0, a1, a2, g0, g1, g2, mag_row >= 0, m0, m1, m2, dt, time_us)
+
+
+@kernel(sense, estimator_imu_step)
+def truth_estimate(x: np.ndarray, origin: np.ndarray) -> tuple:
+    """`SensorSuite.truth_frame`'s truth, then `GroundTruthEstimator.update` (origin known)."""
+    q, rates, vel, acc, pos = truth_of_vector(x)
+    return relative_estimate(origin, q, rates, vel, acc, pos[0], pos[1], pos[2])
+
+
+@kernel(inner_loop_kernel, estimator_imu_step, sense, vehicle_wrench)
+def control_and_rotors(ctl: np.ndarray, att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray,
+                       mix_constants: np.ndarray, mix_state: np.ndarray, est_state: np.ndarray, truth: bool,
+                       yaw_rate_ff: float, dt_s: float, landed: bool, x: np.ndarray, rotor_constants: np.ndarray,
+                       rotor_speeds: np.ndarray) -> tuple:
+    """The stub's attitude/rate loops and mixer (`inner_loop`) on the estimator state's attitude
+    and rates (with `truth`: the true ones, as `GroundTruthEstimator` reports them), then the
+    rotors' world wrench (`Simulation.step`'s `vehicle_wrench`, which also advances the speeds)."""
+    if truth:
+        q, rates, _, _, _ = truth_of_vector(x)
+    else:
+        q, rates = attitude_and_rates(est_state)
+    u0, u1, u2, u3 = inner_loop(ctl, att_gains, rate_state, rate_gains, mix_constants, mix_state, q, rates,
+                                yaw_rate_ff, dt_s, landed)
+    return vehicle_wrench(x, rotor_constants, rotor_speeds, u0, u1, u2, u3, True)
 
 
 class DirectBackend:
@@ -70,6 +123,11 @@ class DirectBackend:
         self._refresh_steps = max(1, self.steps_for(SETPOINT_PERIOD_S, exact=False))
         self.steps = 0
         self._closed = False
+        # the fused loop's per-vehicle operands: vectors that live as long as their owners
+        self.fused = True
+        """Step with the fused loop (False: the class path, its bit-identical reference)."""
+        self._lanes = [self._lane(i) for i in range(self.num_drones)]
+        self._warm_up(self._lanes[0])
 
     # -- Backend API --------------------------------------------------------------------
     def reset(self, seed: int | None = None) -> Snapshot:
@@ -80,6 +138,7 @@ class DirectBackend:
             suite.reset(sensor_seed(seed, i))
         for autopilot in self.autopilots:
             autopilot.reset()
+        self._lanes = [self._lane(i) for i in range(self.num_drones)]  # the controllers are new objects
         self._velocities = [(0.0, 0.0, 0.0)] * self.num_drones
         self._hover_start()
         self._collided = [False] * self.num_drones
@@ -114,7 +173,11 @@ class DirectBackend:
             ap.set_velocity_setpoint_ned(v)
 
     def run_steps(self, steps: int, until: Callable[[], bool] | None = None) -> int:
-        """Step `steps` times (or until `until()` holds after a step); returns steps taken."""
+        """Step `steps` times (or until `until()` holds after a step); returns steps taken.
+        The fused loop unless `fused` is False: then the class path below (the reference the
+        fused loop matches bit for bit; tests compare them)."""
+        if self.fused:
+            return self._run_fused(steps, until)
         sim, frame_of, autopilots = self.sim, self._frame_of, self.autopilots
         n = self.num_drones
         refresh = self._refresh_steps
@@ -134,6 +197,74 @@ class DirectBackend:
             if until is not None and until():
                 return k + 1
         return steps
+
+    def _run_fused(self, steps: int, until: Callable[[], bool] | None) -> int:
+        """`run_steps`: the fused loop (see the module docstring)."""
+        sim, autopilots, lanes = self.sim, self.autopilots, self._lanes
+        refresh = self._refresh_steps
+        begin, push, finish = sim.begin_step, sim.push_wrench, sim.finish_step
+        for k in range(steps):
+            if k and k % refresh == 0:
+                for ap, v in zip(autopilots, self._velocities, strict=True):
+                    ap.set_velocity_setpoint_ned(v)
+            time_us = sim.time_us
+            begin()
+            for (i, truth, x, rotor_k, speeds, suite, est, est_s, est_g, ap, ctl, att_g, rate_s, rate_g, mix_c,
+                 mix_s) in lanes:
+                if truth:
+                    if est.has_origin:
+                        e = est.finish(truth_estimate(x, est_s), time_us)
+                    else:  # the first step: the origin's geodetic position (Python, once)
+                        e = est.update(suite.truth_frame(sim.state(i), time_us))
+                else:
+                    imu = suite.imu_noise  # SensorSuite.sample's order: IMU row, then mag/baro/GPS
+                    row = imu.take_row()
+                    mag_row, baro, gps = suite.slow_samples(x, time_us) if time_us >= suite.next_slow_us \
+                        else (-1, None, None)
+                    dt = est.step_dt(time_us)
+                    e = est.finish(sense_and_estimate(x, imu.array, row, suite.mag_noise.array, mag_row,
+                                                      suite.constants, est_s, est_g, dt, time_us),
+                                   time_us, dt, gps, baro)
+                dt_s = ap.prepare(e)
+                if dt_s is None:  # motors off or idle: the command as `Simulation.step` applies it
+                    command = ap.last_command
+                    u0, u1, u2, u3 = command.controls
+                    force, torque = vehicle_wrench(x, rotor_k, speeds, u0, u1, u2, u3, command.armed)
+                else:
+                    force, torque = control_and_rotors(ctl, att_g, rate_s, rate_g, mix_c, mix_s, est_s, truth,
+                                                       ap.yaw_rate_ff, dt_s, ap.commander.landed, x, rotor_k, speeds)
+                    ap.outputs_in_control()
+                push(i, force, torque)
+            finish()
+            self.steps += 1
+            if sim.has_collisions:
+                for c in sim.collisions():
+                    self._collided[c.vehicle] = True
+            if until is not None and until():
+                return k + 1
+        return steps
+
+    def _lane(self, i: int) -> tuple:
+        sim, ap, est = self.sim, self.autopilots[i], self.autopilots[i].estimator
+        rotors = sim.rotors(i)
+        gains = getattr(est, "gains", est.state)  # the ground-truth estimator has none (unused then)
+        return (i, ap.ground_truth_estimate, sim.vehicle_vector(i), rotors.constants, rotors.speeds, self.sensors[i],
+                est, est.state, gains, ap, ap.control, ap.attitude_control.gains, ap.rate_control.state,
+                ap.rate_control.gains, ap.mixer.constants, ap.mixer.state)
+
+    @staticmethod
+    def _warm_up(lane: tuple) -> None:
+        """Load the fused kernels now (scratch copies of the state), not at the first step."""
+        (_, truth, x, rotor_k, speeds, suite, est, est_s, est_g, ap, ctl, att_g, rate_s, rate_g, mix_c,
+         mix_s) = lane
+        ap.refresh_gains()
+        scratch = np.zeros(ESTIMATOR_STATE)  # a fresh sensor estimator: its first sample sets the attitude
+        noise = np.zeros((1, 6))
+        sense_and_estimate(x.copy(), noise, 0, noise[:, :3].copy(), -1, suite.constants, scratch,
+                           np.zeros_like(est_g) if truth else est_g, 0.004, 4000)
+        truth_estimate(x.copy(), np.ones(GROUND_TRUTH_STATE))
+        control_and_rotors(ctl.copy(), att_g, rate_s.copy(), rate_g, mix_c, mix_s.copy(), scratch, truth, 0.0, 0.004,
+                           False, x.copy(), rotor_k, speeds.copy())
 
     # -- episode start: the same sequence the `stub` backend sends through MAVSDK -------------
     def _hover_start(self) -> None:
