@@ -199,6 +199,8 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
         return None
     actions = [d.action for e in analysis.episodes if e.success for d in e.drones
                if d.manoeuvre == manoeuvre and d.action is not None]
+    if not actions:  # supported only by episodes whose manoeuvre has no single action (e.g. mixed codes)
+        return None
     code = max(set(actions), key=lambda a: (actions.count(a), -a))
     rule = CandidateRule(manoeuvre=manoeuvre, text="", action=code, action_name=action_name(code, facts.frame),
                          support_seeds=seeds, seeds=len(analysis.runs), support_episodes=episodes,
