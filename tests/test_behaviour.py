@@ -327,3 +327,13 @@ def test_no_success_gives_no_rules_and_no_evidence() -> None:
     assert rule3.recovered is None and rule3.line().endswith("no evidence in 1 seeds: no successful head-on episodes")
     document = rules_document([], analysis, facts)
     assert [r["action"] for r in document["rules"]] == ["toward goal"]
+
+
+
+def test_a_drone_that_drops_below_the_other_dives_under() -> None:
+    """TE's most common learned pass: one drone descends about a metre, the other flies straight on."""
+    low = trace(line(0, list(range(11))), (0, 10), [4, 4] + [6] * 8,
+                z=[2.5, 2.0, 1.5, 1.4, 1.4, 1.4, 1.5, 1.7, 1.9, 2.2, 2.5])
+    high = trace(line(0, [10 - y for y in range(11)]), (0, 0), [6] * 10, drone=1)
+    episode = classify_episode([low, high])
+    assert [d.manoeuvre for d in episode.drones] == ["dive_under", "direct"]

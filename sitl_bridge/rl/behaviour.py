@@ -9,6 +9,7 @@ for every other one that also applies, and its outcome:
 | `yield_hover` | hovers while another drone near it is under way (the thesis's TW "one hovers") |
 | `oscillation` | repeated back-and-forth: reversals of direction between consecutive moves |
 | `climb_over` | rises clearly above start and goal (the thesis's O "fly over") |
+| `dive_under` | drops clearly below start and goal (passes under another drone or an obstacle) |
 | `pass_left` / `pass_right` | leaves the straight start-goal line to the left / right of its own travel direction |
 | `hover` | hovers most of the episode with nobody passing (stalls) |
 | `direct` | none of the above: the straight path (`planner_share`: share of action 6, the planner's) |
@@ -58,8 +59,8 @@ is a split."""
 HEAD_ON_COS = -0.9
 """Two drones whose horizontal travel directions are this close to opposite fly head-on."""
 
-PRECEDENCE = ("yield_back_off", "yield_hover", "oscillation", "climb_over", "pass_left", "pass_right",
-              "hover", "direct")
+PRECEDENCE = ("yield_back_off", "yield_hover", "oscillation", "climb_over", "dive_under", "pass_left",
+              "pass_right", "hover", "direct")
 """Manoeuvre names, most specific first: the first that applies names a drone-episode."""
 
 
@@ -221,6 +222,10 @@ def _classify_drone(drone: DroneBehaviour, i: int, trace: Trace, paths: list[np.
     if drone.climb_m >= CLIMB_OVER_M:
         rising = [t for t, m in enumerate(moves) if m[2] >= MOVE_M]
         found["climb_over"] = (rising[0] if rising else None, rising)
+    drop_m = float(min(path[0, 2], goals[i][2]) - path[:, 2].min())
+    if drop_m >= CLIMB_OVER_M:  # the same clearance as a climb, downwards
+        sinking = [t for t, m in enumerate(moves) if m[2] <= -MOVE_M]
+        found["dive_under"] = (sinking[0] if sinking else None, sinking)
     if abs(drone.lateral_m) >= SIDESTEP_M:
         sign = 1.0 if drone.lateral_m > 0 else -1.0  # right is +x of the travel frame, left is -x
         side = [t for t, m in enumerate(moves) if -sign * m[0] >= MOVE_M]

@@ -41,10 +41,12 @@ GROUND_CRASH_M = 0.5
 PLANNER_SHARE = 0.5
 """Direct flights with at least this share of action 6 use the planner's path (thesis rule 1)."""
 
-RULE_MANOEUVRES = ("yield_hover", "yield_back_off", "pass_right", "pass_left", "climb_over", "direct")
+RULE_MANOEUVRES = ("yield_hover", "yield_back_off", "pass_right", "pass_left", "climb_over", "dive_under",
+                   "direct")
 """Manoeuvres that make rules, in YAML order (most specific situation first, `direct` last)."""
-COMPETING = (("pass_right", "pass_left"), ("yield_hover", "yield_back_off"))
-WORDS = {"direct": "fly toward the goal", "climb_over": "climb over it", "pass_left": "move to its left",
+COMPETING = (("pass_right", "pass_left"), ("yield_hover", "yield_back_off"), ("climb_over", "dive_under"))
+WORDS = {"direct": "fly toward the goal", "climb_over": "climb over it", "dive_under": "descend below it",
+         "pass_left": "move to its left",
          "pass_right": "move to its right", "yield_hover": "hover until it has passed",
          "yield_back_off": "move back until it has passed"}
 TOWARD_GOAL = 6

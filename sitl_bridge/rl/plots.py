@@ -13,6 +13,7 @@ Four panels, each with its units:
 from __future__ import annotations
 
 import json
+import os
 import warnings
 from collections import defaultdict
 from collections.abc import Sequence
@@ -229,8 +230,9 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
               framealpha=0.9)
     ax.set_title("exploration and loss", fontsize=10)
 
-    title = dirs[0].name if not several else f"{len(dirs)} runs: " + ", ".join(d.name for d in dirs[:4]) + \
-        (" ..." if len(dirs) > 4 else "")
+    # several runs: what their names share (scenario and experiment), not a list that runs off the page
+    title = dirs[0].name if not several else \
+        f"{len(dirs)} runs of {os.path.commonprefix([d.name for d in dirs]).rstrip('_') or 'several scenarios'}"
     fig.suptitle(title + (f"  ({shortest}-{longest} episodes)" if ragged else f"  ({longest} episodes)"), fontsize=10)
     fig.tight_layout()
     out = Path(out) if out else dirs[0] / "learning_curves.png"
