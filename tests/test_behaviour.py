@@ -337,3 +337,32 @@ def test_a_drone_that_drops_below_the_other_dives_under() -> None:
     high = trace(line(0, [10 - y for y in range(11)]), (0, 0), [6] * 10, drone=1)
     episode = classify_episode([low, high])
     assert [d.manoeuvre for d in episode.drones] == ["dive_under", "direct"]
+
+
+def test_who_dives_follows_a_priority_convention_that_can_differ_by_seed() -> None:
+    """Mirror-image drones need the priority input to break the symmetry: in seeds 0-2 the drone
+    with right of way (drone 1) descends below the other, in seed 3 the one without. The rule
+    keeps the convention most seeds follow, as a condition on `own_priority`, and says the rest."""
+    scenario_file = WORLDS / "two_drones_empty_relative.yaml"
+    facts = scenario_facts(load_scenario(scenario_file), scenario_file)
+    dip = [2.5, 2.0, 1.5, 1.4, 1.4, 1.4, 1.5, 1.7, 1.9, 2.2, 2.5]
+    traces_by_run, runs = {}, []
+    for seed in range(4):
+        diver = 1 if seed < 3 else 0
+        traces = []
+        for e in range(2):
+            north = trace(line(0, list(range(11))), (0, 10), ([4, 4] if diver == 0 else [6, 6]) + [6] * 8,
+                          episode=e, z=dip if diver == 0 else None)
+            south = trace(line(0, [10 - y for y in range(11)]), (0, 0), ([4, 4] if diver == 1 else [6, 6]) + [6] * 8,
+                          drone=1, episode=e, z=dip if diver == 1 else None)
+            traces += [north, south]
+        traces_by_run[str(seed)] = traces
+        runs.append(RunBehaviour(str(seed), classify(traces, run=str(seed))))
+    analysis = BehaviourAnalysis("two_drones_empty_relative", runs)
+    rules = {r.manoeuvre: r for r in candidate_rules(analysis, facts, observations(analysis, traces_by_run,
+                                                                                   facts.layout))}
+    dive = rules["dive_under"]
+    assert dive.when[0] == {"feature": "own_priority", "op": ">=", "value": 0.5}
+    assert (dive.support_seeds, dive.support_episodes) == (3, 6)
+    assert "1 other seed(s) the drone without right of way" in dive.note
+    assert dive.action_name == "down" and dive.in_yaml

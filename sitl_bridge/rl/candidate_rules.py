@@ -145,9 +145,11 @@ def _feature(layout: Mapping[str, slice], name: str, index: int) -> str:
     return name if block.stop - block.start == 1 else f"{name}[{index}]"
 
 
-def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations) -> np.ndarray:
-    """Observations before the first step of `manoeuvre` in the successful episodes (rows)."""
-    rows = []
+def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
+              ) -> tuple[np.ndarray, list[str]]:
+    """Observations before the first step of `manoeuvre` in the successful episodes (rows), and
+    the run (seed) each row comes from."""
+    rows, runs = [], []
     for episode in analysis.episodes:
         if not episode.success:
             continue
@@ -156,7 +158,34 @@ def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observa
             if d.manoeuvre == manoeuvre and d.trigger_step is not None and obs is not None \
                     and d.trigger_step < len(obs):
                 rows.append(np.asarray(obs[d.trigger_step], dtype=float))
-    return np.array(rows)
+                runs.append(episode.run)
+    return np.array(rows), runs
+
+
+def _priority_convention(rows: np.ndarray, runs: list[str], facts: ScenarioFacts,
+                         ) -> tuple[np.ndarray, list[str], bool | None, str]:
+    """Which drone of a pair does the manoeuvre, by its right of way (`own_priority`): a shared
+    policy needs the priority input to break the symmetry of mirror-image situations, and each
+    seed may learn the other convention. Returns the rows of the convention most seeds follow,
+    their runs, whether the drone doing it has right of way (None: no priority input, or the
+    drones of both priorities do it in every seed) and a note on the seeds that differ."""
+    if "own_priority" not in facts.layout or not len(rows):
+        return rows, runs, None, ""
+    high = rows[:, facts.layout["own_priority"].start] >= 0.5
+    by_run: dict[str, set[bool]] = {}
+    for run, h in zip(runs, high.tolist(), strict=True):
+        by_run.setdefault(run, set()).add(h)
+    pure = {run: next(iter(kinds)) for run, kinds in by_run.items() if len(kinds) == 1}
+    if not pure:
+        return rows, runs, None, ""
+    with_way = sum(pure.values())
+    convention = with_way >= len(pure) - with_way  # ties: the drone with right of way
+    keep = [k for k, run in enumerate(runs) if pure.get(run) == convention]
+    others = [run for run, h in pure.items() if h != convention]
+    note = (f"in {len(others)} other seed(s) the drone {'without' if convention else 'with'} right of way "
+            "does it instead (the priority input breaks the symmetry; the convention differs by seed)"
+            if others else "")
+    return rows[keep], [runs[k] for k in keep], convention, note
 
 
 def _drone_condition(rows: np.ndarray, facts: ScenarioFacts, manoeuvre: str) -> tuple[list[dict], str] | None:
@@ -216,10 +245,24 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
         return rule
     doing = f"{WORDS[manoeuvre]} (action {code} {rule.action_name})"
     about_drone = manoeuvre in OTHER_DRONE or facts.num_drones > 1
-    rows = _triggers(analysis, manoeuvre, observations)
+    rows, runs = _triggers(analysis, manoeuvre, observations)
+    convention, convention_note = None, ""
+    if about_drone and manoeuvre not in OTHER_DRONE and facts.num_drones > 1:
+        rows, runs, convention, convention_note = _priority_convention(rows, runs, facts)
+        if convention is not None:  # support: only the seeds that follow the convention kept
+            followers = set(runs)
+            rule.support_seeds = min(rule.support_seeds, len(followers))
+            rule.support_episodes = sum(e.shows(manoeuvre) for e in analysis.episodes
+                                        if e.success and e.run in followers)
+            rule.note = convention_note
     condition = None
     if len(rows):
         condition = _drone_condition(rows, facts, manoeuvre) if about_drone else _lidar_condition(rows, facts)
+        if condition is not None and convention is not None:
+            when, situation = condition
+            when.insert(0, {"feature": _feature(facts.layout, "own_priority", 0),
+                            "op": ">=" if convention else "<", "value": 0.5})
+            condition = when, situation + (" and own right of way" if convention else " and no right of way")
     if condition is None:
         rule.flyable = False
         rule.text = f"{'another drone near' if about_drone else 'an obstacle ahead'}: {doing}"
