@@ -156,8 +156,11 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     ragged = shortest != longest  # runs stopped early (on success): the others carry the curves on
     smooth = f"rolling mean over {window} episode{'s' if window > 1 else ''}"
 
-    def draw(ax, curves: list[np.ndarray], xs: np.ndarray, colour: str, label: str, **style) -> None:
+    def draw(ax, curves: list[np.ndarray], xs: np.ndarray, colour: str, label: str,
+             rate: bool = False, **style) -> None:
         mean, low, high = mean_and_band(curves)
+        if rate:  # a share: the t band of a mean near 0 or 1 must not leave [0, 1]
+            low, high = np.clip(low, 0.0, 1.0), np.clip(high, 0.0, 1.0)
         ax.plot(xs[:len(mean)], mean, color=colour, label=label, **style)
         if several:
             ax.fill_between(xs[:len(mean)], low, high, color=colour, alpha=0.2, lw=0)
@@ -171,7 +174,7 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
         label = "greedy success" + (" (mean, 95 % band)" if several else "")
         if several and ragged:
             label += "; a run that ended holds its last evaluation"
-        draw(ax, curves, grid, "k", label, marker="o", ms=3)
+        draw(ax, curves, grid, "k", label, rate=True, marker="o", ms=3)
     else:
         ax.text(0.5, 0.5, "no greedy evaluations logged\n(train: eval_every)", ha="center", va="center",
                 transform=ax.transAxes, color="0.4")
@@ -209,7 +212,7 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     ax.legend(loc="upper left", fontsize=7, ncol=4, framealpha=0.9)
 
     ax = axes[1, 1]
-    draw(ax, [r["epsilon"] for r in runs], x, "C1", "epsilon (exploration)")
+    draw(ax, [r["epsilon"] for r in runs], x, "C1", "epsilon (exploration)", rate=True)
     ax.set_ylim(0, 1.02)
     ax.set_ylabel("epsilon (probability of a random action)")
     ax.set_xlabel("episodes trained")
@@ -260,7 +263,7 @@ def plot_greedy_groups(groups: dict[str, Sequence[str | Path]], out: str | Path,
         ax.plot(grid, mean, color=f"C{i}", marker="os^D"[i % 4], ms=4, ls=("-", "--", ":", "-.")[i % 4],
                 label=f"{label} ({len(evals)} runs)")  # distinct marks: equal curves stay visible
         if len(evals) > 1:
-            ax.fill_between(grid, low, high, color=f"C{i}", alpha=0.2, lw=0)
+            ax.fill_between(grid, np.clip(low, 0.0, 1.0), np.clip(high, 0.0, 1.0), color=f"C{i}", alpha=0.2, lw=0)
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel("episodes trained (in this scenario)")
     ax.set_ylabel("greedy success rate (share of drone-episodes)")
