@@ -23,10 +23,10 @@ import pybullet as p
 from sitl_bridge.envs.scenario import Scenario, load_scenario
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.physics.simulation import Simulation
-from sitl_bridge.rl.drones_env import DronesEnv, episode_outcome, scenario_env_factory
+from sitl_bridge.rl.drones_env import DronesEnv, scenario_env_factory
 from sitl_bridge.rl.episode_log import read_records
 from sitl_bridge.rl.pictures import EpisodePicture
-from sitl_bridge.rl.rollout import Trace, eval_seeds
+from sitl_bridge.rl.rollout import Trace, eval_seeds, position_of, record_step
 from sitl_bridge.rl.rules import run_length
 from sitl_bridge.rl.run_dir import EPISODES_FILE, read_run_files, run_dir_of, run_scenario
 
@@ -35,11 +35,6 @@ Chooser = Callable[[int, int, np.ndarray], "int | None"]
 
 POSITION_TOLERANCE_M = 0.05
 """A re-flown end position this close to the logged one counts as the same."""
-
-
-def _position(info: dict) -> list[float] | None:
-    value = info.get("position_enu_m")
-    return None if value is None else [float(v) for v in np.asarray(value).reshape(-1)]
 
 
 def _mover_positions(sim: Simulation) -> dict[str, list[float]]:
@@ -60,7 +55,7 @@ def fly(env: DronesEnv, scenario: Scenario, seed: int, choose: Chooser, *, episo
     traces = {i: Trace(episode, i, seed) for i in range(env.num_drones)}
     for i, trace in traces.items():
         info = infos.get(i, {})
-        start = _position(info)
+        start = position_of(info)
         if start is not None:
             trace.positions_enu_m.append(start)
         goal = info.get("goal_enu_m")
@@ -71,17 +66,9 @@ def fly(env: DronesEnv, scenario: Scenario, seed: int, choose: Chooser, *, episo
             for i in env.live:
                 traces[i].outcome = "unfinished"
             break
-        result = env.step({i: int(a) for i, a in chosen.items()})  # type: ignore[arg-type]
-        for i, action in chosen.items():
-            info = result.infos.get(i, {})
-            trace = traces[i]
-            trace.actions.append(int(action))  # type: ignore[arg-type]
-            trace.reward += result.rewards[i]
-            position = _position(info)
-            if position is not None:
-                trace.positions_enu_m.append(position)
-            if result.terminated[i] or result.truncated[i]:
-                trace.outcome = episode_outcome(info, result.terminated[i], result.truncated[i])
+        acting = {i: int(a) for i, a in chosen.items()}  # type: ignore[arg-type]
+        result = env.step(acting)
+        record_step(traces, acting, result)
         obs.update(result.obs)
         for name, where in backend.with_simulation(_mover_positions).items():
             movers.setdefault(name, []).append(where)

@@ -33,9 +33,25 @@ class Trace:
         return len(self.actions)
 
 
-def _position(info: dict[str, Any]) -> list[float] | None:
+def position_of(info: dict[str, Any]) -> list[float] | None:
+    """The drone's position (ENU m) an env step or reset reported in its info, if any."""
     value = info.get("position_enu_m")
     return None if value is None else [float(v) for v in np.asarray(value).reshape(-1)]
+
+
+def record_step(traces: dict[int, Trace], chosen: dict[int, int], result: Any) -> None:
+    """Add one simultaneous step (`DronesEnv.step`'s result for the `chosen` actions) to each
+    acting drone's trace: action, reward, position, and the outcome when its episode ended."""
+    for i, action in chosen.items():
+        info = result.infos.get(i, {})
+        trace = traces[i]
+        trace.actions.append(int(action))
+        trace.reward += result.rewards[i]
+        position = position_of(info)
+        if position is not None:
+            trace.positions_enu_m.append(position)
+        if result.terminated[i] or result.truncated[i]:
+            trace.outcome = episode_outcome(info, result.terminated[i], result.truncated[i])
 
 
 def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable[int],
@@ -50,7 +66,7 @@ def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable
             videos.add(env.render())
         mine = {i: Trace(episode, i, seed) for i in range(env.num_drones)}
         for i, trace in mine.items():
-            start = _position(infos.get(i, {}))
+            start = position_of(infos.get(i, {}))
             if start is not None:
                 trace.positions_enu_m.append(start)
             goal = infos.get(i, {}).get("goal_enu_m")
@@ -60,16 +76,7 @@ def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable
             result = env.step(chosen)
             if videos is not None:
                 videos.add(env.render())
-            for i, action in chosen.items():
-                info = result.infos.get(i, {})
-                trace = mine[i]
-                trace.actions.append(int(action))
-                trace.reward += result.rewards[i]
-                position = _position(info)
-                if position is not None:
-                    trace.positions_enu_m.append(position)
-                if result.terminated[i] or result.truncated[i]:
-                    trace.outcome = episode_outcome(info, result.terminated[i], result.truncated[i])
+            record_step(mine, chosen, result)
             obs.update(result.obs)
         traces.extend(mine.values())
         if videos is not None:
