@@ -58,3 +58,10 @@ def test_claims_in_one_process_do_not_overlap() -> None:
         two.release()
     finally:
         one.release()
+
+
+def test_an_env_asking_for_an_instance_px4_cannot_serve_gets_one_in_0_to_9() -> None:
+    """Benchmarks and tests ask for instances from 200 up (off the users' ones); real PX4 gives
+    instances above 9 no API port of their own, so a px4 env must take a free block in 0..9."""
+    base = Px4SitlFleet.pick_instance_base(2, 200)
+    assert base >= 0 and base + 1 <= 9

@@ -252,10 +252,12 @@ class Px4SitlFleet(AutopilotFleet):
 
     @classmethod
     def pick_instance_base(cls, count: int, preferred: int) -> int:
-        with contextlib.suppress(Px4Error):
-            claim_instances(range(preferred, preferred + count), ports_free=True).release()
-            return preferred
-        return free_px4_instances(count)[0]  # busy: parallel runs take the next free block
+        # real PX4 gives instances above 9 no API port of their own (ports.py): stay in 0..9
+        if preferred + count - 1 <= PX4_LAST_OWN_API_INSTANCE:
+            with contextlib.suppress(Px4Error):
+                claim_instances(range(preferred, preferred + count), ports_free=True).release()
+                return preferred
+        return free_px4_instances(count)[0]  # busy or out of range: the next free block
 
     def start(self, links: Sequence[Any]) -> list[Any]:
         config = self.config
