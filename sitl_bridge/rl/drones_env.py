@@ -94,7 +94,9 @@ class DronesEnv:
 
 
 EnvFactory = Callable[[int], Any]
-"""Builds a fresh Gymnasium or PettingZoo env given a seed."""
+"""Builds a fresh Gymnasium or PettingZoo env given a seed. One that also has a
+`vector(seed, num_envs)` method (`ScenarioEnvFactory`) builds the trainer's `num_envs` copies
+with it; for any other, the copies are `factory(seed + k)`."""
 
 
 class ScenarioEnvFactory:

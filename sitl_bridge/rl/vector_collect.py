@@ -5,7 +5,8 @@ envs of its own), each seen through `DronesEnv`. Episodes run in waves of N: the
 starts at episode e resets copy k with `episode_seed(seed, e + k)`; each vector step picks the
 actions of every copy still flying with one network call (`DQNAgent.act_batch`), steps those
 copies, adds their transitions to the replay in copy order and makes the DQN updates due for
-them (`train_every` counts env transitions). When the wave's last episode ends, its replay rows
+them (`train_every` counts env transitions; epsilon follows the global step, the learning
+rate is the wave's first episode's). When the wave's last episode ends, its replay rows
 and then its records, in episode order, are persisted, and the trainer writes one checkpoint.
 
 Why waves, not a rolling start (a finished copy starting the next episode at once): a
