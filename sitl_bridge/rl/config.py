@@ -72,6 +72,10 @@ class TrainConfig:
     """Transitions collected before the first update (at least batch_size)."""
     train_every: int = 1
     """One gradient update every this many environment steps."""
+    num_envs: int = 1
+    """Copies of the scenario flown at once (sitl_bridge.make_vec_env, single-drone scenarios):
+    episodes run in waves of this many, one network call picks all their actions, and each wave
+    is checkpointed when its last episode ends (1 = one episode at a time)."""
     target_update_period: int = 100
     """Copy the online network into the target network every this many steps (or episodes)."""
     target_update_unit: str = "steps"
@@ -144,6 +148,7 @@ class TrainConfig:
             ("batch_size", 1 <= self.batch_size <= 65536, "an integer in [1, 65536]"),
             ("learning_starts", 0 <= self.learning_starts <= MAX_REPLAY_ROWS, f"an integer in [0, {MAX_REPLAY_ROWS}]"),
             ("train_every", 1 <= self.train_every <= 100_000, "an integer in [1, 100000]"),
+            ("num_envs", 1 <= self.num_envs <= 1024, "an integer in [1, 1024]"),
             ("target_update_period", 1 <= self.target_update_period <= 10_000_000, "an integer in [1, 10000000]"),
             ("target_update_unit", self.target_update_unit in TARGET_UPDATE_UNITS, "steps or episodes"),
             ("replay_capacity", self.batch_size <= self.replay_capacity <= MAX_REPLAY_ROWS,

@@ -207,6 +207,16 @@ class DQNAgent:
             return random_action
         return int(np.argmax(self.q_values(obs)))
 
+    def act_batch(self, obs: np.ndarray, epsilon: float, rng: np.random.Generator) -> np.ndarray:
+        """`act` for each row of `obs` (the same random draws, row by row), with one network
+        call for all the rows that exploit."""
+        draws = [(rng.random() < epsilon, int(rng.integers(self.shape.n_actions))) for _ in range(len(obs))]
+        actions = np.array([action for _, action in draws], dtype=np.int64)
+        greedy = np.array([not explore for explore, _ in draws], dtype=bool)
+        if greedy.any():
+            actions[greedy] = np.argmax(self.q_values(np.asarray(obs)[greedy]), axis=1)
+        return actions
+
     def set_learning_rate(self, rate: float) -> None:
         for group in self.optimizer.param_groups:
             group["lr"] = rate

@@ -16,6 +16,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from sitl_bridge.errors import ConfigError
+
 
 @dataclass
 class StepResult:
@@ -92,22 +94,41 @@ class DronesEnv:
 
 
 EnvFactory = Callable[[int], Any]
-"""Builds a fresh Gymnasium or PettingZoo env given a seed."""
+"""Builds a fresh Gymnasium or PettingZoo env given a seed. One that also has a
+`vector(seed, num_envs)` method (`ScenarioEnvFactory`) builds the trainer's `num_envs` copies
+with it; for any other, the copies are `factory(seed + k)`."""
 
 
-def scenario_env_factory(world: str | Path, autopilot: str = "direct", **kwargs: Any) -> EnvFactory:
-    """Factory for the scenario file `world`: a Gymnasium env for one drone, a PettingZoo
-    ParallelEnv for several (`sitl_bridge.envs.make_env` / `make_parallel_env`)."""
-    from sitl_bridge import envs
-    from sitl_bridge.world import load_world
+class ScenarioEnvFactory:
+    """Builds the envs of a scenario file: a Gymnasium env for one drone, a PettingZoo
+    ParallelEnv for several (`sitl_bridge.envs.make_env` / `make_parallel_env`); `vector` builds
+    N copies at once (`make_vec_env`)."""
 
-    multi = load_world(world).num_vehicles > 1
+    def __init__(self, world: str | Path, autopilot: str = "direct", **kwargs: Any) -> None:
+        from sitl_bridge.world import load_world
 
-    def build(seed: int) -> Any:
-        make = envs.make_parallel_env if multi else envs.make_env
-        return make(str(world), autopilot=autopilot, seed=seed, **kwargs)
+        self.world, self.autopilot, self.kwargs = str(world), autopilot, kwargs
+        self.multi = load_world(world).num_vehicles > 1
 
-    return build
+    def __call__(self, seed: int) -> Any:
+        from sitl_bridge import envs
+
+        make = envs.make_parallel_env if self.multi else envs.make_env
+        return make(self.world, autopilot=self.autopilot, seed=seed, **self.kwargs)
+
+    def vector(self, seed: int, num_envs: int) -> gym.vector.VectorEnv:
+        """`num_envs` copies (copy k seeded `seed + k`, on instance `instance_base + k`)."""
+        from sitl_bridge.envs import make_vec_env
+
+        if self.multi:
+            raise ConfigError(f"{self.world}: num_envs {num_envs}: several copies at once need a "
+                              "single-drone scenario (this one has several drones; use num_envs 1)")
+        return make_vec_env(self.world, num_envs=num_envs, autopilot=self.autopilot, seed=seed, **self.kwargs)
+
+
+def scenario_env_factory(world: str | Path, autopilot: str = "direct", **kwargs: Any) -> ScenarioEnvFactory:
+    """Factory for the scenario file `world` (`kwargs`: env options such as `instance_base`)."""
+    return ScenarioEnvFactory(world, autopilot, **kwargs)
 
 
 def episode_outcome(info: dict[str, Any], terminated: bool, truncated: bool) -> str:

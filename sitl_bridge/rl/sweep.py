@@ -54,6 +54,7 @@ class SweepJob:
     """`<root>/<point>/seed<N>`: holds the run directory and `done.json`."""
     instance_base: int
     vehicles: int
+    """Vehicle instances one run uses at once (the world's vehicles x the largest num_envs)."""
     progress: bool = False
     watchdog: bool = False
     """Train in a `sitl-bridge train` child supervised by `rl.watchdog` (restarted from its last
@@ -131,7 +132,10 @@ def plan(world: str | Path, seeds: Iterable[int], points: list[tuple[str, dict[s
     """Every (grid point, seed) run of the sweep, in a stable order."""
     from sitl_bridge.world import load_world
 
-    vehicles = load_world(world).num_vehicles
+    # A run with num_envs copies flies that many vehicles at once (make_vec_env: instance base + k).
+    copies = max((load_train_config(world, {**(common or {}), **overrides}).num_envs for _, overrides in points),
+                 default=1)
+    vehicles = load_world(world).num_vehicles * copies
     jobs = []
     for point, overrides in points:
         for seed in seeds:

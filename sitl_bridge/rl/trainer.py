@@ -8,9 +8,12 @@ The loop (CleanRL-like, explicit Gymnasium 1.x resets, several drones sharing on
         append the episode's transitions to the replay shards, its records to episodes.jsonl,
         then write a checkpoint (atomic) naming how much of both it covers
 
+With `num_envs` N > 1 the episodes run in waves of N copies flown at once
+(rl/vector_collect.py), each still reset with its own seed, and a checkpoint follows each wave.
+
 `--resume` restores the newest checkpoint that verifies (falling back to older ones), cuts the
 replay shards and the episode log back to what it covers and continues: a run killed at any
-moment loses at most the episode in flight.
+moment loses at most the episode (or wave) in flight.
 """
 
 from __future__ import annotations
@@ -37,14 +40,9 @@ from sitl_bridge.rl import run_dir as rd
 from sitl_bridge.rl.atomic import append_durably, atomic_write_bytes, atomic_write_json
 from sitl_bridge.rl.config import TrainConfig
 from sitl_bridge.rl.dqn import DQNAgent, NetworkShape, epsilon_at, learning_rate_at
-from sitl_bridge.rl.drones_env import (
-    DronesEnv,
-    EnvFactory,
-    episode_outcome,
-    reward_terms,
-    sim_time_s,
-)
+from sitl_bridge.rl.drones_env import DronesEnv, EnvFactory, StepResult
 from sitl_bridge.rl.episode_log import EpisodeLog, EpisodeRecord, read_records
+from sitl_bridge.rl.episode_tally import EpisodeTally
 from sitl_bridge.rl.evaluate import (
     ConstantBaseline,
     EvalResult,
@@ -57,6 +55,7 @@ from sitl_bridge.rl.prioritized import Priorities
 from sitl_bridge.rl.progress import Progress
 from sitl_bridge.rl.replay import ReplayBuffer
 from sitl_bridge.rl.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
+from sitl_bridge.rl.vector_collect import VectorCollector
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +105,12 @@ class Trainer:
         torch.set_num_threads(config.torch_threads)
         self.device = resolve_device(config.device)
 
-        self.env = DronesEnv(env_factory(spec.seed))
+        self.collector: VectorCollector | None = None
+        if config.num_envs > 1:
+            self.collector = VectorCollector(env_factory, spec.seed, config.num_envs)
+            self.env = self.collector.copies[0]  # evaluations fly copy 0 between waves
+        else:
+            self.env = DronesEnv(env_factory(spec.seed))
         # Seed everything before the network exists, so its initial weights are reproducible.
         random.seed(spec.seed)
         torch.manual_seed(spec.seed)
@@ -303,19 +307,24 @@ class Trainer:
 
     def train(self, on_episode: Callable[[list[EpisodeRecord]], bool | None] | None = None) -> TrainResult:
         """Train until `config.episodes` episodes are done. `on_episode(records)` runs after each
-        checkpointed episode; returning False stops early (resumable)."""
+        checkpoint (one episode's records, or a wave's with `num_envs` > 1); returning False
+        stops early (resumable). Periodic evaluations run when the episode count reaches or
+        passes a multiple of `eval_every`."""
         start = time.perf_counter()
         first_episode, first_step = self.episode, self.global_step
         bar = Progress(self.config.episodes, Path(self.spec.world).stem, initial=self.episode,
                        enabled=self.progress)
         try:
             while self.episode < self.config.episodes:
-                records = self.run_episode()
+                before = self.episode
+                records = self.run_episodes()
                 self.save_checkpoint()
                 self._log_tensorboard(records)
-                bar.update(1, explore_success=f"{self.success_rate():.2f}", epsilon=f"{records[0].epsilon:.3f}")
-                if (self.config.eval_every and self.config.eval_episodes
-                        and self.episode % self.config.eval_every == 0 and self.episode < self.config.episodes):
+                bar.update(self.episode - before, explore_success=f"{self.success_rate():.2f}",
+                           epsilon=f"{records[0].epsilon:.3f}")
+                every = self.config.eval_every
+                if (every and self.config.eval_episodes and before // every != self.episode // every
+                        and self.episode < self.config.episodes):
                     result = self.evaluate()
                     baseline = self.constant_baseline()  # measured once per run, then read back
                     bar.update(0, greedy=f"{result.success_rate:.0%}", constant_best=f"{baseline.success_rate:.0%}")
@@ -393,6 +402,13 @@ class Trainer:
     def success_rate(self) -> float:
         return float(np.mean(self.recent_success)) if self.recent_success else 0.0
 
+    def run_episodes(self) -> list[EpisodeRecord]:
+        """Fly the next episode (with `num_envs` > 1, the next wave of that many episodes at
+        once: rl/vector_collect.py), learn from it and persist it; the caller checkpoints."""
+        if self.collector is None:
+            return self.run_episode()
+        return self.collector.run_wave(self)
+
     def run_episode(self) -> list[EpisodeRecord]:
         """Fly one training episode with every drone, learn from it, persist it."""
         config, agent = self.config, self.agent
@@ -403,72 +419,70 @@ class Trainer:
         epsilon_start = self.epsilon()
         obs, reset_infos = self.env.reset(env_seed)
         agent.observe(np.stack(list(obs.values())))
-        folder = NStepFolder(config.n_step, config.gamma) if config.n_step > 1 else None
-        # The env's clock may include the take-off before the first step: count from reset.
-        sim_start = sim_time_s(reset_infos.get(0, {})) or 0.0
-        drones = range(self.env.num_drones)
-        actions: dict[int, list[int]] = {i: [] for i in drones}
-        rewards = dict.fromkeys(drones, 0.0)
-        terms: dict[int, dict[str, float]] = {i: {} for i in drones}
-        outcome: dict[int, str] = {}
-        final_info: dict[int, dict[str, Any]] = {}
+        folder = self.n_step_folder()
+        tally = EpisodeTally(self.env.num_drones, reset_infos)
         losses: list[float] = []
         new_rows: list[np.ndarray] = []
-        sim_time = 0.0
         while self.env.live:
             epsilon = self.epsilon()
             chosen = {i: agent.act(obs[i], epsilon, self.rng) for i in self.env.live}
             result = self.env.step(chosen)
             self.global_step += 1
             for i, action in chosen.items():
-                info = result.infos.get(i, {})
-                actions[i].append(action)
-                rewards[i] += result.rewards[i]
-                for name, value in reward_terms(info).items():
-                    terms[i][name] = terms[i].get(name, 0.0) + value
-                sim_time = sim_time_s(info) or sim_time
-                if result.terminated[i] or result.truncated[i]:
-                    outcome[i] = episode_outcome(info, result.terminated[i], result.truncated[i])
-                    final_info[i] = info
-            if folder is None:
-                rows = self.replay.make_rows(
-                    np.stack([obs[i] for i in chosen]), np.array(list(chosen.values())),
-                    np.array([result.rewards[i] for i in chosen]), np.stack([result.obs[i] for i in chosen]),
-                    np.array([float(result.terminated[i]) for i in chosen]))
-            else:
-                rows = self._fold_n_step(folder, chosen, obs, result)
+                tally.add(i, action, result.rewards[i], result.terminated[i], result.truncated[i],
+                          result.infos.get(i, {}))
+            rows = self.transition_rows(folder, chosen, obs, result)
             if len(rows):
                 self.replay.add_rows(rows)
                 new_rows.append(rows)
             agent.observe(np.stack([result.obs[i] for i in chosen]))
             obs.update(result.obs)
-            if (len(self.replay) >= max(config.batch_size, config.learning_starts)
-                    and self.global_step % config.train_every == 0):
-                losses.append(self._learn_step())
-                self.updates += 1
-                if config.target_update_unit == "steps" and self.updates % config.target_update_period == 0:
-                    agent.align_target()
+            self.learn_due(self.global_step - 1, self.global_step, losses)
         self.episode += 1
         if config.target_update_unit == "episodes" and self.episode % config.target_update_period == 0:
             agent.align_target()
 
-        wall = time.perf_counter() - wall_start
-        records = [EpisodeRecord(
-            episode=self.episode - 1, drone=i, actions=actions[i], reward=rewards[i],
-            reward_terms=terms[i], outcome=outcome.get(i, "timeout"), steps=len(actions[i]),
-            sim_time_s=max(sim_time - sim_start, 0.0), wall_time_s=wall, epsilon=epsilon_start,
-            mean_loss=float(np.mean(losses)) if losses else None, global_step=self.global_step,
-            env_seed=env_seed, extra=_jsonable_extra(final_info.get(i, {})),
-        ) for i in drones]
+        records = tally.records(episode=self.episode - 1, wall_time_s=time.perf_counter() - wall_start,
+                                epsilon=epsilon_start, mean_loss=float(np.mean(losses)) if losses else None,
+                                global_step=self.global_step, env_seed=env_seed)
+        self.persist(records, new_rows)
+        return records
+
+    def n_step_folder(self) -> NStepFolder | None:
+        """A fresh n-step folder for an episode (None for 1-step returns)."""
+        return NStepFolder(self.config.n_step, self.config.gamma) if self.config.n_step > 1 else None
+
+    def transition_rows(self, folder: NStepFolder | None, chosen: dict[int, int], obs: dict[int, np.ndarray],
+                        result: StepResult) -> np.ndarray:
+        """Replay rows of one env step of the drones in `chosen` (n-step: those complete now)."""
+        if folder is None:
+            return self.replay.make_rows(
+                np.stack([obs[i] for i in chosen]), np.array(list(chosen.values())),
+                np.array([result.rewards[i] for i in chosen]), np.stack([result.obs[i] for i in chosen]),
+                np.array([float(result.terminated[i]) for i in chosen]))
+        return self._fold_n_step(folder, chosen, obs, result)
+
+    def learn_due(self, steps_before: int, steps_after: int, losses: list[float]) -> None:
+        """The DQN updates due for env steps `steps_before`+1 .. `steps_after`: one every
+        `train_every` steps once the replay holds enough rows (losses appended to `losses`)."""
+        config = self.config
+        for step in range(steps_before + 1, steps_after + 1):
+            if len(self.replay) >= max(config.batch_size, config.learning_starts) and step % config.train_every == 0:
+                losses.append(self._learn_step())
+                self.updates += 1
+                if config.target_update_unit == "steps" and self.updates % config.target_update_period == 0:
+                    self.agent.align_target()
+
+    def persist(self, records: list[EpisodeRecord], new_rows: list[np.ndarray]) -> None:
+        """Count finished episodes' successes, then persist their replay rows and then their
+        records (the checkpoint naming both lengths comes after)."""
         self.recent_success.extend(r.success for r in records)
-        # Persist: replay rows, then log records, then the checkpoint naming both lengths.
         if new_rows:
             self.store.append(np.concatenate(new_rows))
         self.episode_log.append(records)
-        return records
 
     def _fold_n_step(self, folder: NStepFolder, chosen: dict[int, int], obs: dict[int, np.ndarray],
-                     result: Any) -> np.ndarray:
+                     result: StepResult) -> np.ndarray:
         """This step's transitions folded into the n-step rows that are complete now."""
         ready = []
         for i, action in chosen.items():
@@ -499,16 +513,17 @@ class Trainer:
     def _log_tensorboard(self, records: list[EpisodeRecord]) -> None:
         if self._writer is None:
             # purge_step drops events a killed session wrote after its last checkpoint.
-            self._writer = TensorBoardLog(self.run_dir / rd.TENSORBOARD, purge_step=self.episode - 1)
-        self._writer.episode(self.episode - 1, records, self.success_rate(),
-                             self.agent.optimizer.param_groups[0]["lr"])
+            self._writer = TensorBoardLog(self.run_dir / rd.TENSORBOARD, purge_step=records[0].episode)
+        rate, lr = self.success_rate(), self.agent.optimizer.param_groups[0]["lr"]
+        for episode in sorted({r.episode for r in records}):  # a wave's episodes share its end's rates
+            self._writer.episode(episode, [r for r in records if r.episode == episode], rate, lr)
 
     def close(self) -> None:
-        """Close the env and the TensorBoard writer."""
+        """Close the env(s) and the TensorBoard writer."""
         if self._writer is not None:
             self._writer.close()
             self._writer = None
-        self.env.close()
+        (self.collector or self.env).close()
 
     def __enter__(self) -> Trainer:
         return self
@@ -528,16 +543,6 @@ def _adopt_architecture(config: TrainConfig, network: dict[str, int]) -> TrainCo
                     network["layers"], network["hidden_units"], config.layers, config.hidden_units)
         config = config.replace(layers=network["layers"], hidden_units=network["hidden_units"])
     return config
-
-
-def _jsonable_extra(info: dict[str, Any]) -> dict[str, Any]:
-    """Final positions etc. from the env's info, as plain JSON values (for rules and plots)."""
-    extra: dict[str, Any] = {}
-    for key in ("position_enu_m", "goal_enu_m", "distance_to_goal_m", "start_enu_m"):
-        if key in info and info[key] is not None:
-            value = np.asarray(info[key], dtype=float)
-            extra[key] = [round(float(v), 3) for v in value.reshape(-1)] if value.ndim else round(float(value), 3)
-    return extra
 
 
 def read_run_records(run_dir: str | Path) -> list[dict]:
