@@ -159,3 +159,56 @@ def test_supervised_sweep_restarts_a_killed_run_from_its_checkpoint(tmp_path) ->
 def test_supervised_sweep_needs_the_direct_backend(tmp_path) -> None:
     proc = _sweep(tmp_path / "s", "--seeds", "0", "--watchdog", "--autopilot", "stub")
     assert proc.returncode == 2 and "supervised sweeps run the direct backend only" in proc.stderr
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is `pid` (Linux /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="parent-death signal is Linux only")
+def test_killed_sweep_takes_its_workers_with_it(tmp_path) -> None:
+    import signal
+    import time
+
+    root = tmp_path / "sweep"
+    proc = subprocess.Popen([sys.executable, "-m", "sitl_bridge", "sweep", WORLD, "--out", str(root),
+                             "--episodes", "100000", "--eval-every", "0", "--eval-episodes", "0",
+                             "--seeds", "0-1", "--workers", "2"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(list(root.glob("base/seed*/*/episodes.jsonl"))) < 2:
+            time.sleep(0.5)
+        workers = [pid for pid in _children(proc.pid) if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()]
+        assert len(workers) == 2, "both runs are training in worker processes"
+        proc.send_signal(signal.SIGKILL)  # no chance to clean up: only the kernel can end the workers
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and any(_alive(pid) for pid in workers):
+            time.sleep(0.2)
+        assert not any(_alive(pid) for pid in workers)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for pid in workers:
+            if _alive(pid):
+                import os
+                os.kill(pid, signal.SIGKILL)

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from sitl_bridge.errors import ConfigError, load_yaml
+from sitl_bridge.lifetime import die_with_parent
 from sitl_bridge.rl.config import apply_overrides, load_train_config
 from sitl_bridge.rl.run_dir import RUN_FILE
 
@@ -243,8 +244,10 @@ _slot: int | None = None
 
 
 def _init_worker(counter) -> None:
-    """Give this worker process its own instance slot for its whole life."""
+    """Give this worker process its own instance slot for its whole life, and end it with the
+    sweep (a killed sweep must not leave runs training on with nobody to collect them)."""
     global _slot
+    die_with_parent()
     with counter.get_lock():
         _slot = counter.value
         counter.value += 1

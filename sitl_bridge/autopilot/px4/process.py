@@ -6,7 +6,6 @@ from __future__ import annotations
 import atexit
 import collections
 import contextlib
-import ctypes
 import fcntl
 import logging
 import os
@@ -27,6 +26,7 @@ from sitl_bridge.autopilot.px4.params import (
     format_value,
     load_param_overrides,
 )
+from sitl_bridge.lifetime import die_with_parent
 from sitl_bridge.ports import PX4_LAST_OWN_API_INSTANCE, api_client_port
 
 log = logging.getLogger(__name__)
@@ -208,19 +208,6 @@ def _stop_all_at_exit() -> None:
 atexit.register(_stop_all_at_exit)
 
 
-try:  # loaded here, not in the forked child (no imports or locks between fork and exec)
-    _LIBC: Any = ctypes.CDLL(None, use_errno=True)
-except OSError:  # pragma: no cover - not Linux
-    _LIBC = None
-_PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent() -> None:
-    """Runs in the child before exec: the kernel SIGKILLs PX4 if we die without cleaning up."""
-    if _LIBC is not None:
-        _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-
-
 class Px4Autopilot:
     """One PX4 SITL process for vehicle `instance` (see module docstring).
 
@@ -303,7 +290,7 @@ class Px4Autopilot:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             start_new_session=True,  # own process group: killed as a whole, not by our Ctrl-C
-            preexec_fn=_die_with_parent,
+            preexec_fn=die_with_parent,  # the kernel SIGKILLs PX4 if we die without cleaning up
         )
         self.starts += 1
         _LIVE.add(self)
