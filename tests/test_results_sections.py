@@ -143,19 +143,24 @@ def test_grids_of_typical_episodes_are_drawn(experiment) -> None:
 def test_a_second_report_reuses_the_flights_and_says_not_run(experiment, tmp_path) -> None:
     """A scenario without finished runs is "not run" in every section; the others come from the
     cache (their rules and tree files are not written again)."""
-    from sitl_bridge.rl import distill_results, experiment_report, rule_results
+    from sitl_bridge.rl import backend_results, distill_results, experiment_report, rule_results
 
     out, results = experiment
     files = [out / "rules" / "empty.yaml", out / "trees" / "empty.txt", out / "figures" / "empty_episodes.png"]
     before = [f.stat().st_mtime_ns for f in files]
-    again = {k: v for k, v in results.items() if k not in ("behaviour", "rules", "trees")}
+    again = {k: v for k, v in results.items() if k not in ("behaviour", "rules", "trees", "backends")}
     again["window"] = {"world": str(worlds_dir() / "window.yaml"), "seeds": [], "unfinished": [0, 1],
                        "success_mean": None, "success_ci95": None}
     settings = _settings(out)
     experiment_report.write_figures(again, out, say=lambda _: None, settings=settings)
     rule_results.add_results_section(again, out, settings=settings, say=lambda _: None)
     distill_results.add_results_section(again, out, settings=settings, say=lambda _: None)
+    said: list[str] = []
+    backend_results.add_results_section(again, out, settings=settings, say=said.append)
     assert [f.stat().st_mtime_ns for f in files] == before
+    assert not [line for line in said if line.startswith("  ")]  # no backend flown again
+    assert again["backends"]["empty"] == results["backends"]["empty"]
+    assert {b["skipped"] for b in again["backends"]["window"].values()} == {"no finished runs"}
     assert again["behaviour"]["window"]["status"] == "not run" and again["trees"]["window"]["status"] == "not run"
     assert again["behaviour"]["empty"] == results["behaviour"]["empty"]
     assert again["trees"]["random_goal"] == results["trees"]["random_goal"]
@@ -163,6 +168,7 @@ def test_a_second_report_reuses_the_flights_and_says_not_run(experiment, tmp_pat
     text = experiment_report.render(again, json.loads((out / "experiment.json").read_text()))
     assert "| `window` | not run (no finished runs) |" in text
     assert "- `window`: not run" in text and "### `window`" in text
+    assert "| `window` | all | skipped: no finished runs |" in text
 
 
 def test_backends_section(experiment) -> None:

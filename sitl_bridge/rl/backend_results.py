@@ -52,12 +52,16 @@ CI_METHOD = "pooled Wilson 95 % over all drone-episodes of the seeds"
 
 
 def _px4_missing() -> str | None:
+    import os
+
     from sitl_bridge.autopilot.px4.process import Px4Error, find_px4_bin
 
+    if not os.environ.get("PX4_BIN"):
+        return "PX4_BIN not set (no real PX4 SITL build)"
     try:
         find_px4_bin()
     except Px4Error as exc:
-        return f"PX4_BIN not set or not a PX4 build ({exc})"
+        return str(exc)
     return None
 
 

@@ -211,19 +211,23 @@ def _backends_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str
     if backends is None:
         return lines + _not_run("backends", meta)
     settings = meta.get("report") or {}
-    seeds = settings.get("backend_seeds") or "all"
-    lines += [f"Each scenario's result policies (best checkpoint of its first {seeds} finished seeds; `backend_seeds`) "
-              f"flown greedily for {settings.get('backend_episodes', '?')} episodes per seed on each autopilot backend, "
-              f"the same reset seeds on every backend (`eval_seeds({EVAL_SEED_BASE} + seed, n)`; `sitl-bridge transfer` "
-              f"flies the same code). Rates: mean over seeds, interval: {CI_METHOD}. Steps: mean steps of the "
-              f"successful drone-episodes; m/step: distance flown per step; same actions: drone-episodes that flew "
-              f"exactly the actions they flew on `{REFERENCE}`. The px4 column needs `PX4_BIN` (a real PX4 SITL build) "
-              "when the report is made.", "",
+    count = settings.get("backend_seeds")
+    seeds = f"the first {count} finished seeds" if count else "every finished seed"
+    lines += [f"The result policy (best checkpoint) of {seeds} of each scenario (`backend_seeds`) flown greedily for "
+              f"{settings.get('backend_episodes', '?')} episodes per seed on each autopilot backend, the same reset seeds "
+              f"on every backend (`eval_seeds({EVAL_SEED_BASE} + seed, n)`; `sitl-bridge transfer` flies the same code). "
+              f"Rates: mean over seeds, interval: {CI_METHOD}. Steps: mean steps of the successful drone-episodes; "
+              "m/step: distance flown per step; same actions: drone-episodes that flew exactly the actions they flew "
+              f"on `{REFERENCE}`. The px4 rows need `PX4_BIN` (a real PX4 SITL build) when the report is made.", "",
               "| scenario | backend | seeds | drone-episodes | success [95 % CI] | collision rate [95 % CI] "
               f"| steps (successful) | m/step | same actions as `{REFERENCE}` | outcomes |",
               "|---|---|---|---|---|---|---|---|---|---|"]
     why: list[str] = []
     for stem, entry in backends.items():
+        reasons = {b.get("skipped") for b in entry.values()}
+        if len(reasons) == 1 and None not in reasons:  # e.g. no finished runs: one row, not one per backend
+            lines.append(f"| `{stem}` | all | skipped: {_cell(reasons.pop())} | | | | | | | |")
+            continue
         for backend, b in entry.items():
             if b.get("skipped"):
                 lines.append(f"| `{stem}` | {backend} | skipped: {_cell(b['skipped'])} | | | | | | | |")
