@@ -55,6 +55,7 @@ def test_transfer_direct_and_stub_same_seeds(run_dir: Path, tmp_path: Path) -> N
     assert result.returncode == 0, result.stdout + result.stderr
     rows = json.loads(table.read_text())
     assert [r["autopilot"] for r in rows] == ["direct", "stub"]
+    assert "same_actions_as" not in rows[0] and rows[1]["same_actions_as"]["compared"] == 2
     for row in rows:
         assert row["drone_episodes"] == 2
         lo, hi = row["success_ci95"]

@@ -52,7 +52,13 @@ def main(args: argparse.Namespace) -> int:
         print("sitl-bridge transfer: --episodes must be at least 1", file=sys.stderr)
         return 2
     # torch and mavsdk are only imported for this command
-    from sitl_bridge.rl.backend_transfer import differs, fly_on_backend, summary, why_differ
+    from sitl_bridge.rl.backend_transfer import (
+        differs,
+        fly_on_backend,
+        same_actions,
+        summary,
+        why_differ,
+    )
     from sitl_bridge.rl.policy import policy_from_checkpoint
     from sitl_bridge.rl.run_dir import run_dir_of, run_scenario
 
@@ -71,8 +77,10 @@ def main(args: argparse.Namespace) -> int:
                 row = {"run": str(run), "world": Path(world).name, "autopilot": autopilot, **summary(flight)}
                 if reference is None:
                     reference = flight
-                elif differs(summary(reference), row):
-                    row["why"] = why_differ(reference.autopilot, reference, flight)
+                else:
+                    row["same_actions_as"] = {"autopilot": reference.autopilot, **same_actions(reference, flight)}
+                    if differs(summary(reference), row):
+                        row["why"] = why_differ(reference.autopilot, reference, flight)
                 rows.append(row)
                 print(_format(row), flush=True)
                 if row.get("why"):
@@ -94,7 +102,8 @@ def main(args: argparse.Namespace) -> int:
 def _format(row: dict) -> str:
     s_lo, s_hi = row["success_ci95"]
     c_lo, c_hi = row["collision_ci95"]
-    steps = row["mean_steps_success"]
+    steps, same = row["mean_steps_success"], row.get("same_actions_as")
     return (f"{row['run']} ({row['world']}) {row['autopilot']:>8}: success {row['success']:4.0%} "
             f"[{s_lo:.0%}, {s_hi:.0%}], collision {row['collision']:4.0%} [{c_lo:.0%}, {c_hi:.0%}], "
-            f"steps to goal {'-' if steps is None else f'{steps:.1f}'} ({row['drone_episodes']} drone-episodes)")
+            f"steps to goal {'-' if steps is None else f'{steps:.1f}'} ({row['drone_episodes']} drone-episodes)"
+            + (f", same actions as {same['autopilot']} in {same['identical']}/{same['compared']}" if same else ""))
