@@ -143,7 +143,7 @@ def _experiment(folder: Path, extra: str = "") -> Path:
   comparisons:
     - curriculum: {curriculum.name}
   report: {{behaviour_episodes: 1, verify_episodes: 1, distill_episodes: 1, distill_iterations: 1,
-           picture_episodes: 1}}
+           picture_episodes: 1, backend_episodes: 1}}
 {extra}""")
     return path
 
@@ -195,7 +195,7 @@ def _mtimes(folder: Path) -> dict[str, int]:
 def test_experiment_end_to_end(finished) -> None:
     file, out = finished
     results = json.loads((out / "results.json").read_text())
-    assert set(results) == {"empty", "transfer", "behaviour", "rules", "trees"}  # tests/test_results_sections.py
+    assert set(results) == {"empty", "transfer", "behaviour", "rules", "trees", "backends"}  # test_results_sections
     empty = results["empty"]
     assert [s["seed"] for s in empty["seeds"]] == [0, 1]
     for seed in empty["seeds"]:

@@ -1,4 +1,4 @@
-"""The report's behaviour, rules and trees sections and its grids of typical episodes, on a tiny
+"""The report's behaviour, rules, trees and backends sections and its grids of typical episodes, on a tiny
 two-seed experiment (empty and random_goal, two training episodes per run): the sections hold the
 issue's keys with the right types, the rules YAMLs exist and fly, random_goal's rules are verified
 in empty (the thesis's order), the grids are drawn, scenarios without runs say "not run", and a
@@ -7,6 +7,7 @@ second report reuses the cached flights."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,8 @@ def _experiment(folder: Path, report: str = "") -> Path:
       train: {TINY_TRAIN}
     - world: {RANDOM_GOAL}
       train: {TINY_TRAIN}
-  report: {report or "{behaviour_episodes: 2, verify_episodes: 2, distill_episodes: 2, distill_iterations: 1, picture_episodes: 2, picture_cells: 4}"}
+  report: {report or "{behaviour_episodes: 2, verify_episodes: 2, distill_episodes: 2, distill_iterations: 1, "
+                     "picture_episodes: 2, picture_cells: 4, backend_episodes: 2, backend_seeds: 1}"}
 """)
     return path
 
@@ -141,19 +143,24 @@ def test_grids_of_typical_episodes_are_drawn(experiment) -> None:
 def test_a_second_report_reuses_the_flights_and_says_not_run(experiment, tmp_path) -> None:
     """A scenario without finished runs is "not run" in every section; the others come from the
     cache (their rules and tree files are not written again)."""
-    from sitl_bridge.rl import distill_results, experiment_report, rule_results
+    from sitl_bridge.rl import backend_results, distill_results, experiment_report, rule_results
 
     out, results = experiment
     files = [out / "rules" / "empty.yaml", out / "trees" / "empty.txt", out / "figures" / "empty_episodes.png"]
     before = [f.stat().st_mtime_ns for f in files]
-    again = {k: v for k, v in results.items() if k not in ("behaviour", "rules", "trees")}
+    again = {k: v for k, v in results.items() if k not in ("behaviour", "rules", "trees", "backends")}
     again["window"] = {"world": str(worlds_dir() / "window.yaml"), "seeds": [], "unfinished": [0, 1],
                        "success_mean": None, "success_ci95": None}
     settings = _settings(out)
     experiment_report.write_figures(again, out, say=lambda _: None, settings=settings)
     rule_results.add_results_section(again, out, settings=settings, say=lambda _: None)
     distill_results.add_results_section(again, out, settings=settings, say=lambda _: None)
+    said: list[str] = []
+    backend_results.add_results_section(again, out, settings=settings, say=said.append)
     assert [f.stat().st_mtime_ns for f in files] == before
+    assert not [line for line in said if line.startswith("  ")]  # no backend flown again
+    assert again["backends"]["empty"] == results["backends"]["empty"]
+    assert {b["skipped"] for b in again["backends"]["window"].values()} == {"no finished runs"}
     assert again["behaviour"]["window"]["status"] == "not run" and again["trees"]["window"]["status"] == "not run"
     assert again["behaviour"]["empty"] == results["behaviour"]["empty"]
     assert again["trees"]["random_goal"] == results["trees"]["random_goal"]
@@ -161,6 +168,54 @@ def test_a_second_report_reuses_the_flights_and_says_not_run(experiment, tmp_pat
     text = experiment_report.render(again, json.loads((out / "experiment.json").read_text()))
     assert "| `window` | not run (no finished runs) |" in text
     assert "- `window`: not run" in text and "### `window`" in text
+    assert "| `window` | all | skipped: no finished runs |" in text
+
+
+def test_backends_section(experiment) -> None:
+    """Seed 0's policy flown on direct and the real stub, same episodes; px4 only with PX4_BIN."""
+    out, results = experiment
+    assert isinstance(results["transfer"], dict)  # the comparisons keep their key
+    assert set(results["backends"]) == {"empty", "random_goal"}
+    for backends in results["backends"].values():
+        assert list(backends) == ["direct", "stub", "px4"]
+        for name in ("direct", "stub"):
+            b = backends[name]
+            assert "skipped" not in b and [s["seed"] for s in b["seeds"]] == [0]  # backend_seeds: 1
+            (seed,) = b["seeds"]
+            assert seed["episodes"] == 2 and seed["drone_episodes"] == 2
+            assert b["success_mean"] == seed["success"] and b["collision_mean"] == seed["collision"]
+            lo, hi = b["success_ci95"]
+            assert lo <= b["success_mean"] <= hi and sum(b["outcomes"].values()) == 2
+            assert (seed["mean_steps_success"] is None) == (seed["success"] == 0)
+        stub = backends["stub"]
+        assert stub["same_actions"]["compared"] == 2 and isinstance(stub["differs"], bool)
+        assert (stub["why"] is not None) == stub["differs"]
+        px4 = backends["px4"]
+        if os.path.isfile(os.environ.get("PX4_BIN", "")):
+            assert "skipped" not in px4 and px4["seeds"][0]["episodes"] == 2
+        else:
+            assert "PX4_BIN" in px4["skipped"] and px4["seeds"] == [] and px4["success_mean"] is None
+    report = (out / "RESULTS.md").read_text()
+    assert "## Transfer between autopilot backends" in report and "pooled Wilson" in report
+    assert "| `empty` | stub | 1 | 2 |" in report and "| `random_goal` | direct | 1 | 2 |" in report
+
+
+def test_backend_flights_are_cached_per_seed(experiment) -> None:
+    """A second report with every seed flies only the seed not flown before, on each backend."""
+    import dataclasses
+
+    from sitl_bridge.rl import backend_results
+
+    out, results = experiment
+    said: list[str] = []
+    settings = dataclasses.replace(_settings(out), backend_seeds=0)
+    entries = backend_results.scenario_backends("empty", results, out, settings, said.append)
+    names = ["direct", "stub"] + (["px4"] if os.path.isfile(os.environ.get("PX4_BIN", "")) else [])
+    assert [line for line in said if line.startswith("  ")] == [
+        f"  empty seed 1 on {name}: 2 greedy episodes" for name in names]
+    for name in names:
+        assert [s["seed"] for s in entries[name]["seeds"]] == [0, 1]
+        assert entries[name]["seeds"][0] == results["backends"]["empty"][name]["seeds"][0]
 
 
 def test_simpler_scenarios_follow_the_thesis_and_the_comparisons() -> None:
@@ -182,5 +237,8 @@ def test_report_settings_in_the_experiment_file(tmp_path) -> None:
     assert settings.verify_episodes == 7 and settings.behaviour_episodes == 10  # the rest: defaults
     with pytest.raises(ConfigError, match=r"report\.distill_depth: expected an integer >= 1 <= 12, got 0"):
         load_experiment(_experiment(tmp_path, "{distill_depth: 0}"))
+    assert load_experiment(_experiment(tmp_path, "{backend_seeds: 0}")).report.backend_seeds == 0  # 0: all seeds
+    with pytest.raises(ConfigError, match=r"report\.backend_episodes: expected an integer >= 1"):
+        load_experiment(_experiment(tmp_path, "{backend_episodes: 0}"))
     with pytest.raises(ConfigError, match=r"report\.episodes: unknown key"):
         load_experiment(_experiment(tmp_path, "{episodes: 3}"))

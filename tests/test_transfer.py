@@ -11,6 +11,14 @@ from pathlib import Path
 import pytest
 from conftest import pick_free_instances
 
+from sitl_bridge.rl.backend_transfer import (
+    BackendFlight,
+    differs,
+    pooled,
+    same_actions,
+    summary,
+    why_differ,
+)
 from sitl_bridge.rl.stats import wilson_interval
 
 WORLD = str(Path(__file__).resolve().parent.parent / "worlds" / "empty.yaml")
@@ -47,6 +55,7 @@ def test_transfer_direct_and_stub_same_seeds(run_dir: Path, tmp_path: Path) -> N
     assert result.returncode == 0, result.stdout + result.stderr
     rows = json.loads(table.read_text())
     assert [r["autopilot"] for r in rows] == ["direct", "stub"]
+    assert "same_actions_as" not in rows[0] and rows[1]["same_actions_as"]["compared"] == 2
     for row in rows:
         assert row["drone_episodes"] == 2
         lo, hi = row["success_ci95"]
@@ -60,6 +69,40 @@ def test_transfer_on_px4(run_dir: Path, px4_bin: str, tmp_path: Path) -> None:
                        "--px4-bin", px4_bin, "--json", str(table))
     assert result.returncode == 0, result.stdout + result.stderr
     assert [r["autopilot"] for r in json.loads(table.read_text())] == ["direct", "px4"]
+
+
+def _flight(autopilot: str, outcomes: list[str], steps: list[int], step_m: list[float],
+            actions: list[list[int]]) -> BackendFlight:
+    return BackendFlight(autopilot, len(outcomes), 0, outcomes, steps, step_m, actions)
+
+
+def test_why_two_backends_differ_comes_from_the_episodes() -> None:
+    """Known episodes: on px4 two of four goals become timeouts, the goals that remain take
+    longer and the drone covers less ground per step; one episode repeats direct's actions."""
+    direct = _flight("direct", ["goal"] * 4, [8, 8, 10, 10], [1.0, 1.0, 1.0, 1.0],
+                     [[3] * 8, [3] * 8, [1] * 10, [1] * 10])
+    px4 = _flight("px4", ["goal", "goal", "timeout", "timeout"], [8, 12, 30, 30], [1.0, 0.5, 0.5, 0.5],
+                  [[3] * 8, [3, 3, 2] + [3] * 9, [1, 1, 1, 2] + [1] * 26, [1] * 30])
+    assert summary(direct)["success"] == 1.0 and summary(px4)["success"] == 0.5
+    assert summary(px4)["mean_steps_success"] == 10.0 and summary(px4)["outcomes"]["timeout"] == 2
+    assert differs(summary(direct), summary(px4)) and not differs(summary(direct), summary(direct))
+    same = same_actions(direct, px4)
+    # the second parts at step 3, the third at 4, the fourth flies on after direct's 10 steps: 11
+    assert same == {"compared": 4, "identical": 1, "first_difference_median": 4}
+    why = why_differ("direct", direct, px4)
+    assert why.startswith("success 50 % vs 100 % on direct (-50 points)")
+    assert "goal 4 -> 2, timeout 0 -> 2" in why and "10.0 steps vs 9.0 (+11 %)" in why
+    assert "0.62 m flown per step vs 1.00 (-38 %)" in why
+    assert "same actions in 1 of 4 drone-episodes, the others part at step 4 (median)" in why
+
+
+def test_pooled_flights_keep_every_drone_episode() -> None:
+    a = _flight("stub", ["goal", "crash"], [5, 3], [1.0, 1.0], [[0] * 5, [1] * 3])
+    b = _flight("stub", ["goal", "goal"], [7, 9], [1.0, 1.0], [[0] * 7, [0] * 9])
+    total = summary(pooled([a, b]))
+    assert total["drone_episodes"] == 4 and total["success"] == 0.75 and total["collision"] == 0.25
+    assert total["success_ci95"] == list(wilson_interval(3, 4)) and total["mean_steps_success"] == 7.0
+    assert BackendFlight.from_dict(a.to_dict()) == a
 
 
 def test_unknown_backend_is_one_line(run_dir: Path) -> None:

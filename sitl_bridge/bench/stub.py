@@ -12,17 +12,14 @@ import argparse
 import time
 
 from sitl_bridge.client.fleet import Fleet
-from sitl_bridge.ports import instance_free
+from sitl_bridge.ports import free_instance_block
 from sitl_bridge.session import SimSession, default_world_path
 
 
 def free_instance_base(count: int, start: int = 200) -> int:
     """First instance i >= start with instances i..i+count-1 all free (benches stay off the
     low instances users run; MAVLink system ids 1 + i must stay below 256)."""
-    for first in range(start, 255 - count):
-        if all(instance_free(first + k) for k in range(count)):
-            return first
-    raise RuntimeError("no free vehicle instances for the benchmark")
+    return free_instance_block(count, start)
 
 
 def measure(vehicles: int, seconds: float) -> dict[str, tuple[float, float, float]]:

@@ -4,8 +4,10 @@ transfers between backends.
 Every run's policy is flown greedily in the run's own scenario on each backend, on the same
 evaluation seeds (`rl.rollout.eval_seeds`), one env per backend. Per backend: success and
 collision (crash) rate of the drone-episodes with Wilson 95 % confidence intervals, and the
-mean steps of the successful episodes (a slower velocity response shows there first).
-`--json FILE` also writes the table.
+mean steps of the successful episodes (a slower velocity response shows there first); where a
+backend's rates are more than 10 points from the first backend's, a line on why, from the
+episodes (outcome split, steps, distance per step, where the actions part). `--json FILE` also
+writes the table. The experiment report's backend table runs the same code (`rl.backend_transfer`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ from pathlib import Path
 
 from sitl_bridge.autopilot import registry
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.stats import wilson_interval
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -32,8 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--speed-factor", type=float, default=0.0,
                         help="speed factor of the session backends (default 0: as fast as lockstep allows)")
     parser.add_argument("--instance-base", type=int, default=None,
-                        help="first vehicle instance of the session backends (default: px4 a free "
-                             "one in 0..9, others 0)")
+                        help="first vehicle instance of the session backends (default: a free block; "
+                             "px4 a free one in 0..9)")
     parser.add_argument("--px4-bin", default=None, help="PX4 SITL binary (default: $PX4_BIN)")
     parser.add_argument("--json", default=None, metavar="FILE", help="also write the table as JSON")
     parser.set_defaults(func=main)
@@ -51,8 +52,13 @@ def main(args: argparse.Namespace) -> int:
         print("sitl-bridge transfer: --episodes must be at least 1", file=sys.stderr)
         return 2
     # torch and mavsdk are only imported for this command
-    from sitl_bridge.rl.drones_env import scenario_env_factory
-    from sitl_bridge.rl.evaluate import evaluate_policy
+    from sitl_bridge.rl.backend_transfer import (
+        differs,
+        fly_on_backend,
+        same_actions,
+        summary,
+        why_differ,
+    )
     from sitl_bridge.rl.policy import policy_from_checkpoint
     from sitl_bridge.rl.run_dir import run_dir_of, run_scenario
 
@@ -63,23 +69,22 @@ def main(args: argparse.Namespace) -> int:
                 raise ConfigError(f"{run}: not a training run directory (no run.json)")
             world = str(run_scenario(run))
             policy = policy_from_checkpoint(run)
+            reference = None  # the first backend: the others are compared with it
             for autopilot in autopilots:
-                extra = {"px4_bin": args.px4_bin} if args.px4_bin else {}
-                if autopilot != "direct":
-                    extra["instance_base"] = _instance_base(args.instance_base, autopilot, world)
-                factory = scenario_env_factory(world, autopilot, speed_factor=args.speed_factor, **extra)
-                result, traces = evaluate_policy(policy, factory, world=world, episodes=args.episodes,
-                                                 seed=args.seed)
-                n = len(traces)
-                goals = sum(t.outcome == "goal" for t in traces)
-                crashes = sum(t.outcome == "crash" for t in traces)
-                row = {"run": str(run), "world": Path(world).name, "autopilot": autopilot,
-                       "drone_episodes": n, "success": goals / n if n else 0.0,
-                       "success_ci95": wilson_interval(goals, n), "collision": crashes / n if n else 0.0,
-                       "collision_ci95": wilson_interval(crashes, n),
-                       "mean_steps_success": result.mean_steps_success}
+                flight = fly_on_backend(policy, world, autopilot, episodes=args.episodes, seed=args.seed,
+                                        speed_factor=args.speed_factor, instance_base=args.instance_base,
+                                        px4_bin=args.px4_bin)
+                row = {"run": str(run), "world": Path(world).name, "autopilot": autopilot, **summary(flight)}
+                if reference is None:
+                    reference = flight
+                else:
+                    row["same_actions_as"] = {"autopilot": reference.autopilot, **same_actions(reference, flight)}
+                    if differs(summary(reference), row):
+                        row["why"] = why_differ(reference.autopilot, reference, flight)
                 rows.append(row)
                 print(_format(row), flush=True)
+                if row.get("why"):
+                    print(f"  why: {row['why']}", flush=True)
     except KeyboardInterrupt:
         print("\ninterrupted", file=sys.stderr)
         return 130
@@ -94,22 +99,11 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _instance_base(given: int | None, autopilot: str, world: str) -> int:
-    """`--instance-base`, else for px4 the first of enough free PX4 instances (lock files)."""
-    if given is not None:
-        return given
-    if autopilot != "px4":
-        return 0
-    from sitl_bridge.autopilot.px4.allocation import free_px4_instances
-    from sitl_bridge.world import load_world
-
-    return free_px4_instances(load_world(world).num_vehicles)[0]
-
-
 def _format(row: dict) -> str:
     s_lo, s_hi = row["success_ci95"]
     c_lo, c_hi = row["collision_ci95"]
-    steps = row["mean_steps_success"]
+    steps, same = row["mean_steps_success"], row.get("same_actions_as")
     return (f"{row['run']} ({row['world']}) {row['autopilot']:>8}: success {row['success']:4.0%} "
             f"[{s_lo:.0%}, {s_hi:.0%}], collision {row['collision']:4.0%} [{c_lo:.0%}, {c_hi:.0%}], "
-            f"steps to goal {'-' if steps is None else f'{steps:.1f}'} ({row['drone_episodes']} drone-episodes)")
+            f"steps to goal {'-' if steps is None else f'{steps:.1f}'} ({row['drone_episodes']} drone-episodes)"
+            + (f", same actions as {same['autopilot']} in {same['identical']}/{same['compared']}" if same else ""))

@@ -14,7 +14,7 @@ An experiment file (`experiments/thesis.yaml`)::
       comparisons:                    # with vs without the earlier network, same seeds
         - curriculum: ../worlds/curricula/er_te.yaml
           thesis: {result: "about as many episodes with as without", source: "thesis 7.2"}
-      report: {behaviour_episodes: 10}   # the report step's own flights (`ReportSettings`)
+      report: {behaviour_episodes: 10, backend_episodes: 10}   # the report's own flights (`ReportSettings`)
 
 World and curriculum paths are relative to the current directory, or else to the experiment
 file. A comparison's curriculum names scenarios of the list in order; its first stage's runs are
@@ -48,7 +48,7 @@ from sitl_bridge.rl import sweep
 from sitl_bridge.rl.config import load_train_config, parse_train_node
 from sitl_bridge.rl.run_dir import RUN_FILE
 
-RESERVED = frozenset({"transfer", "rules", "behaviour", "trees"})
+RESERVED = frozenset({"transfer", "rules", "behaviour", "trees", "backends"})
 """Top-level keys of results.json that are not scenarios."""
 INVOCATIONS_FILE = "invocations.jsonl"
 """`DIR/runs/invocations.jsonl`: one line per training invocation (workers, backend, --only, counts)."""
@@ -106,6 +106,10 @@ class ReportSettings:
     """Greedy episodes per seed flown for the grid of typical episodes."""
     picture_cells: int = 6
     """Most episodes (one per behaviour, most common first) in a scenario's grid."""
+    backend_episodes: int = 10
+    """Greedy episodes per seed flown on each autopilot backend for the transfer table."""
+    backend_seeds: int = 0
+    """How many finished seeds (the lowest) the backend table flies; 0: all of them."""
 
 
 @dataclass(frozen=True)
@@ -179,7 +183,8 @@ def _report_settings(node: Node) -> ReportSettings:
     names = [f.name for f in dataclasses.fields(ReportSettings)]
     node.reject_unknown(set(names))
     limits = {"distill_depth": 12}
-    return ReportSettings(**{name: child.integer(minimum=1, maximum=limits.get(name, 10_000))
+    lowest = {"backend_seeds": 0}  # 0: every seed
+    return ReportSettings(**{name: child.integer(minimum=lowest.get(name, 1), maximum=limits.get(name, 10_000))
                              for name, child in node.items()})
 
 

@@ -3,8 +3,9 @@
 Figures (`DIR/figures/`): per scenario the learning curves of its seeds (`plots.plot_runs`, mean
 and 95 % band) and a grid of its typical greedy episodes (`episode_grid`, `<stem>_episodes.png`),
 per comparison the transfer runs' curves and the greedy success with and without the earlier
-network in one panel (`plots.plot_greedy_groups`). The behaviour, rules and trees sections come
-from `results.json`'s `behaviour`, `rules` and `trees` (`rule_results`, `distill_results`).
+network in one panel (`plots.plot_greedy_groups`). The behaviour, rules, trees and backend sections
+come from `results.json`'s `behaviour`, `rules`, `trees` and `backends` (`rule_results`,
+`distill_results`, `backend_results`).
 """
 
 from __future__ import annotations
@@ -123,6 +124,7 @@ def render(results: dict[str, Any], meta: dict[str, Any]) -> str:
         "",
     ]
     lines += _scenario_table(results) + _thesis_table(results) + _figures(results) + _transfer_section(results)
+    lines += _backends_section(results, meta)
     lines += _episodes_section(results) + _behaviour_section(results, meta) + _rules_section(results, meta)
     lines += _trees_section(results, meta)
     lines += _per_seed(results) + _definitions(meta)
@@ -199,6 +201,53 @@ def _transfer_section(results: dict[str, Any]) -> list[str]:
         figures = [f"[{c[k]}]({c[k]})" for k in ("figure", "figure_with_runs") if c.get(k)]
         lines.append(f"- {name}: " + (", ".join(figures) if figures else "no figure (no finished runs)"))
     return lines + [""]
+
+
+def _backends_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
+    from sitl_bridge.rl.backend_results import CI_METHOD, REFERENCE
+
+    lines = ["## Transfer between autopilot backends", ""]
+    backends = results.get("backends")
+    if backends is None:
+        return lines + _not_run("backends", meta)
+    settings = meta.get("report") or {}
+    count = settings.get("backend_seeds")
+    seeds = f"the first {count} finished seeds" if count else "every finished seed"
+    lines += [f"The result policy (best checkpoint) of {seeds} of each scenario (`backend_seeds`) flown greedily for "
+              f"{settings.get('backend_episodes', '?')} episodes per seed on each autopilot backend, the same reset seeds "
+              f"on every backend (`eval_seeds({EVAL_SEED_BASE} + seed, n)`; `sitl-bridge transfer` flies the same code). "
+              f"Rates: mean over seeds, interval: {CI_METHOD}. Steps: mean steps of the successful drone-episodes; "
+              "m/step: distance flown per step; same actions: drone-episodes that flew exactly the actions they flew "
+              f"on `{REFERENCE}`. The px4 rows need `PX4_BIN` (a real PX4 SITL build) when the report is made.", "",
+              "| scenario | backend | seeds | drone-episodes | success [95 % CI] | collision rate [95 % CI] "
+              f"| steps (successful) | m/step | same actions as `{REFERENCE}` | outcomes |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    why: list[str] = []
+    for stem, entry in backends.items():
+        reasons = {b.get("skipped") for b in entry.values()}
+        if len(reasons) == 1 and None not in reasons:  # e.g. no finished runs: one row, not one per backend
+            lines.append(f"| `{stem}` | all | skipped: {_cell(reasons.pop())} | | | | | | | |")
+            continue
+        for backend, b in entry.items():
+            if b.get("skipped"):
+                lines.append(f"| `{stem}` | {backend} | skipped: {_cell(b['skipped'])} | | | | | | | |")
+                continue
+            same = b.get("same_actions")
+            same_text = "-" if same is None else f"{same['identical']} / {same['compared']}"
+            outcomes = ", ".join(f"{k} {v}" for k, v in b["outcomes"].items() if v)
+            lines.append(f"| `{stem}` | {backend} | {len(b['seeds'])} | {b['drone_episodes']} "
+                         f"| {_pct(b['success_mean'])}{_ci(b['success_ci95'])} "
+                         f"| {_pct(b['collision_mean'])}{_ci(b['collision_ci95'])} | {_num(b['mean_steps_success'], 1)} "
+                         f"| {_num(b['mean_step_m'], 2)} | {same_text} | {outcomes} |")
+            if b.get("why"):
+                why.append(f"- `{stem}` on {backend}: {_cell(b['why'])}.")
+    lines.append("")
+    if why:
+        lines += [f"Why they differ (success or collision rate more than 10 points from `{REFERENCE}`), from the "
+                  "episodes:", "", *why, ""]
+    else:
+        lines += [f"No backend's success or collision rate is more than 10 points from `{REFERENCE}`'s.", ""]
+    return lines
 
 
 def _thesis_note(thesis: dict[str, str]) -> str:
@@ -448,7 +497,9 @@ def _report_flights(meta: dict[str, Any]) -> list[str]:
             f"{settings['behaviour_episodes']} greedy episodes per seed; rules YAMLs {settings['verify_episodes']} "
             f"episodes per scenario flown; trees depth <= {settings['distill_depth']}, {settings['distill_iterations']} "
             f"DAgger iterations of {settings['distill_episodes']} episodes, best seed only; pictures "
-            f"{settings['picture_episodes']} greedy episodes per seed, up to {settings['picture_cells']} drawn."]
+            f"{settings['picture_episodes']} greedy episodes per seed, up to {settings['picture_cells']} drawn; "
+            f"backends {settings.get('backend_episodes', '?')} greedy episodes per seed and backend, "
+            f"{settings.get('backend_seeds') or 'all'} seeds (cached in `backends/`)."]
 
 
 def _parallel(meta: dict[str, Any]) -> str:

@@ -5,8 +5,8 @@ episodes and wall time its periodic evaluations took to reach 90 %, per scenario
 results.json holds one object per scenario keyed by the scenario file's stem (`seeds`: per-seed
 `seed`, `greedy_success`, `collision_rate`, `episodes_to_90`, `wall_s`; `success_mean`,
 `success_ci95`), `transfer` (per comparison: `with`, `without`, `test`, `p_value`,
-`effect_size`), and `rules` and `trees` when the modules that make them are installed (see
-`SECTION_HOOKS`). Numbers are plain JSON; an undefined one (no run, one seed) is null.
+`effect_size`), and `rules`, `trees` and `backends` (the policies flown on each autopilot
+backend) when the modules that make them are installed (see `SECTION_HOOKS`). Numbers are plain JSON; an undefined one (no run, one seed) is null.
 
 Definitions (also printed in RESULTS.md):
 
@@ -63,6 +63,7 @@ TEST_NAME = ("Mann-Whitney U (two-sided) on episodes to 90 % greedy success; run
 SECTION_HOOKS: dict[str, str] = {
     "rules": "sitl_bridge.rl.rule_results:add_results_section",
     "trees": "sitl_bridge.rl.distill_results:add_results_section",
+    "backends": "sitl_bridge.rl.backend_results:add_results_section",
 }
 """Sections other modules add: `add_results_section(results: dict, out: Path, *, settings:
 ReportSettings, say) -> None` sets `results[name]` (the rules hook also `results["behaviour"]`;
