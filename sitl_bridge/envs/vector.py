@@ -4,9 +4,21 @@ Design (measured with `sitl-bridge bench`, key `batched`): each copy is an ordin
 with its own pybullet client, wrapped in Gymnasium's `SyncVectorEnv`. A copy is therefore
 exactly the env a user makes with `make_env` on the same seed, so observations, rewards and
 resets are those of N single envs by construction (tests/test_envs_vector.py checks it), and
-no second implementation of the scenario exists. One shared pybullet world with the copies far
-apart would save the per-client step overhead (a few microseconds of pybullet's C work, under
-10 % of a `direct` step today), but the Python per-vehicle work dominates either way.
+no second implementation of the scenario exists; each copy runs its 250 physics steps per
+action in one hot loop (the `direct` backend's fused loop).
+
+Alternatives measured (issue 11; CPU time, 16 copies, steady flight; `tools/vehicle_step_floor.py`
+re-measures the floor): stepping all copies in lockstep, one physics step at a time, cost ~23 us
+per vehicle-step against ~20 us for this design (16 worlds touched per step: cache misses), and
+calling the compiled kernels once per step over all copies (numba typed lists of their state
+vectors) ~27 us: batching saves the kernels' dispatch (~1 us a call) but not the per-vehicle
+Python (commander, 50/5 Hz sensor and estimator updates, collision tests), and list access
+costs more than it saves. One shared pybullet world saves ~0.9 us of `stepSimulation` per copy
+but is not bit-identical to single envs: copies 1 km apart round differently in absolute
+coordinates, and overlapping copies in separate collision groups still diverged after contacts.
+The floor: pybullet's per-body calls (own step ~1.1, state read ~1.45, wrench ~0.5 bare steps)
+are ~3 bare steps per vehicle-step; with the ~1.25 physics steps per flown step that episode
+starts add, they alone cap `batched` near 0.26 of bare pybullet.
 
 Autoreset is Gymnasium's `SAME_STEP` mode: when a copy's episode ends, `step` returns the final
 observation in `infos["final_obs"]` and the first observation of the next episode in `obs`, the
