@@ -266,19 +266,25 @@ class Lockstep:
             suite.position_offset_ned_m = offset
         return True
 
-    def idle(self, timeout_s: float = 0.0) -> None:
+    def idle(self, timeout_s: float = 0.0, until: Callable[[], bool] | None = None) -> bool:
         """Without advancing time: run the pumps and read the links once, then keep doing so
-        until `timeout_s` (wall) has passed."""
+        until `timeout_s` (wall) has passed, or, with `until`, as soon as `until()` holds after
+        a pass (checked every `PUMP_INTERVAL_S`: what it waits for may come on a socket the
+        links do not see, e.g. an in-process stub's MAVLink API). Returns `until()` (True
+        without one)."""
         deadline = time.monotonic() + timeout_s
+        slice_s = PUMP_INTERVAL_S if until is not None else PUMP_INTERVAL_S * 20
         while True:
             for pump in self.pumps:
                 pump()
             for link in self.links:
                 link.poll()
+            if until is not None and until():
+                return True
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                return
-            self._wait_readable(self.links, min(remaining, PUMP_INTERVAL_S * 20) if self.pumps else remaining)
+                return until is None
+            self._wait_readable(self.links, min(remaining, slice_s) if self.pumps else remaining)
 
     # -- real-time factor ---------------------------------------------------------------------
     @property
