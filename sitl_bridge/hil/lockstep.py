@@ -79,8 +79,8 @@ class Lockstep:
     """The lockstep loop over one `Simulation`, its per-vehicle sensor suites and HIL links.
 
     Args:
-        sim: the physics (`time_us`, `step_us`, `state(i)`, `step(commands)`).
-        sensors: one sensor suite per vehicle (`sample(state, time_us) -> SensorFrame`).
+        sim: the physics (`time_us`, `step_us`, `state(i)`, `vehicle_vector(i)`, `step(commands)`).
+        sensors: one `SensorSuite` per vehicle (`sample_values`, `ground_truth`).
         links: one connected `HilLink` per vehicle (vehicle i <-> links[i]).
         speed_factor: F x real time; 0 = as fast as possible.
         pumps: callables run after the sensor messages are sent (see module docstring).
@@ -161,7 +161,10 @@ class Lockstep:
         time_us = sim.time_us
         links = self.links
         for index, suite in enumerate(self.sensors):
-            links[index].send_sensor_frame(suite.sample(sim.state(index), time_us))
+            # plain values, no SensorFrame; the ground truth (a VehicleState) only when sent
+            link = links[index]
+            truth = suite.ground_truth(sim.state(index)) if link.state_due(time_us) else None
+            link.send_sensor_values(time_us, suite.sample_values(sim.vehicle_vector(index), time_us), truth)
         for pump in self.pumps:
             pump()
         self._collect_answers(time_us)
