@@ -123,6 +123,15 @@ def test_idle_until_returns_once_the_condition_holds(pumped):
     assert len(passes) >= 1 and set(passes) == {sim.time_us}  # pumped, time frozen
 
 
+def test_hold_runs_the_pumps_once_more_at_the_held_time(pumped):
+    sim, _, _, lockstep = pumped
+    seen = []
+    lockstep.pumps.append(lambda: seen.append(sim.time_us))
+    lockstep.run_for(0.02)
+    # one pass per step (at the step's time), then one held (queued telemetry goes out)
+    assert seen == [0, 4000, 8000, 12000, 16000, 20000] and sim.time_us == 20000
+
+
 def test_run_for_stops_early_on_condition(pumped):
     sim, _, _, lockstep = pumped
     steps = lockstep.run_for(1.0, until=lambda: sim.time_us >= 40_000)

@@ -221,10 +221,17 @@ class Lockstep:
 
     def hold(self) -> None:
         """End the running segment: nothing moves until the next step. (PX4 is frozen in
-        lockstep; in-process autopilots keep answering their API through `idle()`.)"""
+        lockstep; in-process autopilots keep answering their API through `idle()`.) The pumps
+        run once more, held: what in-process autopilots queued while running (batched
+        telemetry) goes out before anyone reads it."""
         if self._running:
-            now = time.monotonic()
             self._running = False
+            for pump in self.pumps:
+                try:
+                    pump()
+                except Exception as exc:  # noqa: BLE001 - a hold must not fail (maybe in a finally)
+                    log.debug("pump failed while holding: %s (the next step or idle reports it)", exc)
+            now = time.monotonic()
             self._segment_end_wall = now
             self.stats.sim_s += (self.sim.time_us - self._segment_sim0_us) / 1e6
             self.stats.wall_s += now - self._segment_wall0
