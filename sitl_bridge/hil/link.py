@@ -367,10 +367,8 @@ class HilLink:
         )
 
     def _encode_state(self, truth: Any, wire_us: int) -> bytes:
-        qw, qx, qy, qz = truth.quaternion_ned_frd.tolist()
-        p, q, r = truth.angular_velocity_frd_rad_s.tolist()
-        vn, ve, vd = truth.velocity_ned_m_s.tolist()
-        an, ae, ad = truth.accel_ned_m_s2.tolist()
+        # `raw`: the same values as plain floats (no arrays built on the way, ~every step for PX4)
+        (qw, qx, qy, qz), (p, q, r), (vn, ve, vd), (an, ae, ad), _ = truth.raw
         speed_cm_s = min(int(math.sqrt(vn * vn + ve * ve + vd * vd) * 100.0), _UINT16)
         return self._encoder.pack(
             _STATE_CLASS,
