@@ -171,6 +171,18 @@ class FrameParser:
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the complete frames now available, in order."""
         buf = self._buffer
+        if not buf and type(data) is bytes:
+            # the usual case: whole unsigned MAVLink 2 frames of known ids (one step's messages)
+            frames, pos = _whole_v2_frames(data)
+            self.stats.frames += len(frames)
+            if pos == len(data):
+                return frames
+            # anything else (garbage, a split frame, MAVLink 1, signing) from there on: the full path
+            return frames + self._feed(data[pos:])
+        return self._feed(data)
+
+    def _feed(self, data: bytes) -> list[Frame]:
+        buf = self._buffer
         if buf:
             buf += data
             source: bytes | bytearray = buf
@@ -276,6 +288,34 @@ _MESSAGE_INFO: dict[int, tuple[bytes, int]] = {
 _ZERO_PADDING = [bytes(n) for n in range(256)]
 # Frame(...) goes through a Python-level __new__; tuple.__new__ builds the same object directly
 _new_frame = tuple.__new__
+
+
+def _whole_v2_frames(data: bytes) -> tuple[list[Frame], int]:
+    """The frames at the start of `data` that are complete, unsigned MAVLink 2 frames of known
+    ids with a good checksum, and where the first byte not taken lies. The same frames as
+    `FrameParser._check` gives, in fewer steps (this runs for every message of every step)."""
+    frames: list[Frame] = []
+    pos = 0
+    size = len(data)
+    while size - pos >= MAVLINK2_HEADER_LEN + 2 and data[pos] == MAVLINK2_MAGIC and not data[pos + 2]:
+        length = data[pos + 1]
+        end = pos + MAVLINK2_HEADER_LEN + length + 2
+        if end > size:
+            break
+        msgid = data[pos + 7] | (data[pos + 8] << 8) | (data[pos + 9] << 16)
+        info = _MESSAGE_INFO.get(msgid)
+        if info is None:
+            break
+        raw = data if pos == 0 and end == size else data[pos:end]
+        end_payload = MAVLINK2_HEADER_LEN + length
+        if crc_mcrf4xx(info[0], crc_mcrf4xx(raw[1:end_payload])) != raw[end_payload] | (raw[end_payload + 1] << 8):
+            break
+        full = info[1]
+        payload = raw[MAVLINK2_HEADER_LEN:end_payload] + _ZERO_PADDING[full - length] if length < full \
+            else raw[MAVLINK2_HEADER_LEN:MAVLINK2_HEADER_LEN + full]
+        frames.append(_new_frame(Frame, (msgid, raw[5], raw[6], raw[4], payload, raw)))
+        pos = end
+    return frames, pos
 
 
 def unpack_payload(frame: Frame) -> tuple:

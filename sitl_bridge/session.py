@@ -339,7 +339,7 @@ class SimSession:
             if time.monotonic() > deadline:
                 raise SessionError(f"MAVLink commands not delivered to the stubs within {timeout_s:g} s (wall)")
             with runner.exclusive() as lockstep:
-                lockstep.idle(0.001)
+                lockstep.idle(0.001, until)  # returns once delivered, not after the whole 1 ms
 
     def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]],
                           timeout_s: float = DELIVERY_TIMEOUT_S) -> None:

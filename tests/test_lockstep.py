@@ -111,6 +111,27 @@ def test_run_for_is_exact_then_holds(pumped):
         lockstep.run_for(0.0041)
 
 
+def test_idle_until_returns_once_the_condition_holds(pumped):
+    sim, _, _, lockstep = pumped
+    passes = []
+    lockstep.pumps.append(lambda: passes.append(sim.time_us))
+    # what it waits for arrives with the third pass: it returns then, not after the minute
+    assert lockstep.idle(60.0, until=lambda: len(passes) >= 3) is True
+    assert len(passes) == 3
+    passes.clear()
+    assert lockstep.idle(0.01, until=lambda: False) is False  # never: the timeout, then False
+    assert len(passes) >= 1 and set(passes) == {sim.time_us}  # pumped, time frozen
+
+
+def test_hold_runs_the_pumps_once_more_at_the_held_time(pumped):
+    sim, _, _, lockstep = pumped
+    seen = []
+    lockstep.pumps.append(lambda: seen.append(sim.time_us))
+    lockstep.run_for(0.02)
+    # one pass per step (at the step's time), then one held (queued telemetry goes out)
+    assert seen == [0, 4000, 8000, 12000, 16000, 20000] and sim.time_us == 20000
+
+
 def test_run_for_stops_early_on_condition(pumped):
     sim, _, _, lockstep = pumped
     steps = lockstep.run_for(1.0, until=lambda: sim.time_us >= 40_000)

@@ -14,7 +14,11 @@ import pytest
 from sitl_bridge import mavlink
 from sitl_bridge.autopilot.stub import MavlinkApi
 from sitl_bridge.autopilot.stub.harness import StubHarness
-from sitl_bridge.autopilot.stub.mavlink_api import API_BIND_BASE_PORT, API_REMOTE_BASE_PORT
+from sitl_bridge.autopilot.stub.mavlink_api import (
+    API_BIND_BASE_PORT,
+    API_REMOTE_BASE_PORT,
+    BATCH_MAX_MESSAGES,
+)
 from sitl_bridge.world.loader import load_world
 
 d = mavlink.dialect
@@ -307,6 +311,54 @@ def test_keepalive_heartbeat_while_simulated_time_stands_still(free_instance: in
             assert harness.autopilot.time_us == frozen and api.stats.keepalives >= 1
         finally:
             peer.close()
+
+
+def _datagrams(sock: socket.socket) -> list[list[int]]:
+    """The message ids of every datagram waiting in `sock`, one list per datagram."""
+    got = []
+    while True:
+        try:
+            data = sock.recv(65536)
+        except TimeoutError:
+            return got
+        got.append([f.msgid for f in mavlink.FrameParser().feed(data)])
+
+
+def test_batched_telemetry_waits_for_its_wall_interval_or_a_held_pump(free_instance: int) -> None:
+    wall = [100.0]
+    with StubHarness(WORLD, seed=12, ground_truth_estimate=True) as harness, \
+            MavlinkApi(harness.autopilot, free_instance, gcs=False, clock=lambda: wall[0], batch_wall_s=0.01) as api, \
+            MavlinkApi(harness.autopilot, free_instance + 1, gcs=False, clock=lambda: wall[0]) as unbatched:
+        peer, other = Peer(free_instance, api.pump), Peer(free_instance + 1, unbatched.pump)
+        try:
+            def run(steps: int) -> None:
+                for _ in range(steps):
+                    harness.run_for(0.004)
+                    api.pump()
+                    unbatched.pump()
+
+            run(1)  # the first streams of both go out at once
+            assert _datagrams(peer.sock) and _datagrams(other.sock)
+            run(15)  # 60 ms simulated in no wall time: everything stays queued
+            assert _datagrams(peer.sock) == []
+            each_step = _datagrams(other.sock)
+            assert len(each_step) >= 3  # one datagram per step with something due
+            api.pump()  # held (simulated time unchanged): all of it, one datagram
+            (batch,) = _datagrams(peer.sock)
+            assert batch == [m for datagram in each_step for m in datagram]  # same messages, same order
+            run(100)  # a long run without wall time: a datagram once BATCH_MAX_MESSAGES are queued
+            sizes = [len(datagram) for datagram in _datagrams(peer.sock)]
+            assert len(sizes) >= 2 and all(BATCH_MAX_MESSAGES <= n < 2 * BATCH_MAX_MESSAGES for n in sizes)
+            api.pump()  # held: the rest
+            _datagrams(peer.sock)
+            run(10)
+            assert _datagrams(peer.sock) == []
+            wall[0] += 0.01  # the batch interval passed: the next running pump sends the queue
+            run(1)
+            assert len(_datagrams(peer.sock)) == 1
+        finally:
+            peer.close()
+            other.close()
 
 
 def test_reposition_flies_to_a_global_position_and_holds(vehicle) -> None:

@@ -30,6 +30,7 @@ from sitl_bridge import mavlink
 from sitl_bridge.hil.admission import Admission
 from sitl_bridge.hil.errors import HilError, LinkClosed, LockstepTimeout
 from sitl_bridge.physics.simulation import MotorCommand
+from sitl_bridge.physics.state import armed_command
 from sitl_bridge.ports import HIL_BASE_PORT
 from sitl_bridge.world.clock import DEFAULT_STEP_US
 
@@ -267,20 +268,43 @@ class HilLink:
     def send_sensor_frame(self, frame: Any) -> None:
         """Send one step's messages: exactly one HIL_SENSOR (id 0), then HIL_GPS when the
         frame has a GPS sample, then HIL_STATE_QUATERNION when due. One TCP write."""
+        ax, ay, az = frame.accel_frd_m_s2.tolist()
+        gx, gy, gz = frame.gyro_frd_rad_s.tolist()
+        mag = frame.mag_frd_gauss
+        self.send_sensor_values(frame.time_us, (ax, ay, az, gx, gy, gz, None if mag is None else tuple(mag.tolist()),
+                                                frame.baro, frame.gps), frame.truth)
+
+    def state_due(self, time_us: int) -> bool:
+        """Whether the step at simulated `time_us` carries HIL_STATE_QUATERNION (then
+        `send_sensor_values` needs its ground truth)."""
+        if self.state_interval_us < 0:
+            return False
+        wire_us = time_us + self._time_offset_us
+        if wire_us <= self._last_sent_wire_us:
+            wire_us = self._last_sent_wire_us + self.step_us  # as `send_sensor_values` will
+        return wire_us >= self._next_state_wire_us
+
+    def send_sensor_values(self, time_us: int, values: tuple, truth: Any = None) -> None:
+        """`send_sensor_frame` from the values of `SensorSuite.sample_values` (accel and gyro
+        FRD, mag FRD or None, baro, GPS) without building a frame; `truth` (a `GroundTruth`)
+        is needed only when `state_due(time_us)`."""
         client = self._client
         if client is None:
             raise LinkClosed(f"vehicle {self.instance}: no autopilot connected", instance=self.instance)
-        wire_us = frame.time_us + self._time_offset_us
+        wire_us = time_us + self._time_offset_us
         if wire_us <= self._last_sent_wire_us:
             # Simulation reset in place: continue the autopilot's clock instead.
-            self._time_offset_us = self._last_sent_wire_us + self.step_us - frame.time_us
+            self._time_offset_us = self._last_sent_wire_us + self.step_us - time_us
             wire_us = self._last_sent_wire_us + self.step_us
-        data = self._encode_sensor(frame, wire_us)
-        if frame.gps is not None:
-            data += self._encode_gps(frame.gps, wire_us)
+        data = self._encode_sensor(values, wire_us)
+        gps = values[8]
+        if gps is not None:
+            data += self._encode_gps(gps, wire_us)
             self.stats.gps_msgs += 1
         if self.state_interval_us >= 0 and wire_us >= self._next_state_wire_us:
-            data += self._encode_state(frame.truth, wire_us)
+            if truth is None:
+                raise ValueError(f"vehicle {self.instance}: HIL_STATE_QUATERNION due without a ground truth")
+            data += self._encode_state(truth, wire_us)
             self.stats.state_msgs += 1
             interval = self.state_interval_us
             # Schedule on a fixed grid so e.g. 5000 us over 4000 us steps averages 200 Hz.
@@ -294,9 +318,8 @@ class HilLink:
         self._last_sent_wire_us = wire_us
         self.stats.sensor_msgs += 1
 
-    def _encode_sensor(self, frame: Any, wire_us: int) -> bytes:
-        ax, ay, az = frame.accel_frd_m_s2.tolist()
-        gx, gy, gz = frame.gyro_frd_rad_s.tolist()
+    def _encode_sensor(self, values: tuple, wire_us: int) -> bytes:
+        ax, ay, az, gx, gy, gz, mag, baro, _ = values
         a, g = ACCEL_LIMIT_M_S2, GYRO_LIMIT_RAD_S
         if not (-a <= ax <= a and -a <= ay <= a and -a <= az <= a
                 and -g <= gx <= g and -g <= gy <= g and -g <= gz <= g):
@@ -306,12 +329,11 @@ class HilLink:
         fields = FIELDS_IMU
         mx = my = mz = 0.0
         pressure_hpa = pressure_alt_m = temperature_c = 0.0
-        if frame.mag_frd_gauss is not None:
-            mx, my, mz = frame.mag_frd_gauss.tolist()
+        if mag is not None:
+            mx, my, mz = mag
             m = MAG_LIMIT_GAUSS
             mx, my, mz = _clamp(mx, -m, m), _clamp(my, -m, m), _clamp(mz, -m, m)
             fields |= FIELDS_MAG
-        baro = frame.baro
         if baro is not None:
             pressure_hpa = _clamp(float(baro.pressure_hpa), *PRESSURE_RANGE_HPA)
             temperature_c = _clamp(float(baro.temperature_c), *TEMPERATURE_RANGE_C)
@@ -345,10 +367,8 @@ class HilLink:
         )
 
     def _encode_state(self, truth: Any, wire_us: int) -> bytes:
-        qw, qx, qy, qz = truth.quaternion_ned_frd.tolist()
-        p, q, r = truth.angular_velocity_frd_rad_s.tolist()
-        vn, ve, vd = truth.velocity_ned_m_s.tolist()
-        an, ae, ad = truth.accel_ned_m_s2.tolist()
+        # `raw`: the same values as plain floats (no arrays built on the way, ~every step for PX4)
+        (qw, qx, qy, qz), (p, q, r), (vn, ve, vd), (an, ae, ad), _ = truth.raw
         speed_cm_s = min(int(math.sqrt(vn * vn + ve * ve + vd * vd) * 100.0), _UINT16)
         return self._encoder.pack(
             _STATE_CLASS,
@@ -458,7 +478,7 @@ class HilLink:
             if not (0.0 <= u1 <= 1.0 and 0.0 <= u2 <= 1.0 and 0.0 <= u3 <= 1.0 and 0.0 <= u4 <= 1.0):
                 # out of range or NaN (rare): limit each
                 u1, u2, u3, u4 = _motor_value(u1), _motor_value(u2), _motor_value(u3), _motor_value(u4)
-            self.command = MotorCommand((u1, u2, u3, u4), True)
+            self.command = armed_command((u1, u2, u3, u4))
         else:
             self.command = _DISARMED
 

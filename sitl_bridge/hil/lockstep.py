@@ -79,8 +79,8 @@ class Lockstep:
     """The lockstep loop over one `Simulation`, its per-vehicle sensor suites and HIL links.
 
     Args:
-        sim: the physics (`time_us`, `step_us`, `state(i)`, `step(commands)`).
-        sensors: one sensor suite per vehicle (`sample(state, time_us) -> SensorFrame`).
+        sim: the physics (`time_us`, `step_us`, `state(i)`, `vehicle_vector(i)`, `step(commands)`).
+        sensors: one `SensorSuite` per vehicle (`sample_values`, `ground_truth`).
         links: one connected `HilLink` per vehicle (vehicle i <-> links[i]).
         speed_factor: F x real time; 0 = as fast as possible.
         pumps: callables run after the sensor messages are sent (see module docstring).
@@ -161,7 +161,10 @@ class Lockstep:
         time_us = sim.time_us
         links = self.links
         for index, suite in enumerate(self.sensors):
-            links[index].send_sensor_frame(suite.sample(sim.state(index), time_us))
+            # plain values, no SensorFrame; the ground truth (a VehicleState) only when sent
+            link = links[index]
+            truth = suite.ground_truth(sim.state(index)) if link.state_due(time_us) else None
+            link.send_sensor_values(time_us, suite.sample_values(sim.vehicle_vector(index), time_us), truth)
         for pump in self.pumps:
             pump()
         self._collect_answers(time_us)
@@ -218,10 +221,17 @@ class Lockstep:
 
     def hold(self) -> None:
         """End the running segment: nothing moves until the next step. (PX4 is frozen in
-        lockstep; in-process autopilots keep answering their API through `idle()`.)"""
+        lockstep; in-process autopilots keep answering their API through `idle()`.) The pumps
+        run once more, held: what in-process autopilots queued while running (batched
+        telemetry) goes out before anyone reads it."""
         if self._running:
-            now = time.monotonic()
             self._running = False
+            for pump in self.pumps:
+                try:
+                    pump()
+                except Exception as exc:  # noqa: BLE001 - a hold must not fail (maybe in a finally)
+                    log.debug("pump failed while holding: %s (the next step or idle reports it)", exc)
+            now = time.monotonic()
             self._segment_end_wall = now
             self.stats.sim_s += (self.sim.time_us - self._segment_sim0_us) / 1e6
             self.stats.wall_s += now - self._segment_wall0
@@ -266,19 +276,25 @@ class Lockstep:
             suite.position_offset_ned_m = offset
         return True
 
-    def idle(self, timeout_s: float = 0.0) -> None:
+    def idle(self, timeout_s: float = 0.0, until: Callable[[], bool] | None = None) -> bool:
         """Without advancing time: run the pumps and read the links once, then keep doing so
-        until `timeout_s` (wall) has passed."""
+        until `timeout_s` (wall) has passed, or, with `until`, as soon as `until()` holds after
+        a pass (checked every `PUMP_INTERVAL_S`: what it waits for may come on a socket the
+        links do not see, e.g. an in-process stub's MAVLink API). Returns `until()` (True
+        without one)."""
         deadline = time.monotonic() + timeout_s
+        slice_s = PUMP_INTERVAL_S if until is not None else PUMP_INTERVAL_S * 20
         while True:
             for pump in self.pumps:
                 pump()
             for link in self.links:
                 link.poll()
+            if until is not None and until():
+                return True
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                return
-            self._wait_readable(self.links, min(remaining, PUMP_INTERVAL_S * 20) if self.pumps else remaining)
+                return until is None
+            self._wait_readable(self.links, min(remaining, slice_s) if self.pumps else remaining)
 
     # -- real-time factor ---------------------------------------------------------------------
     @property

@@ -29,6 +29,17 @@ class MotorCommand:
 
 
 _DISARMED = MotorCommand((0.0, 0.0, 0.0, 0.0), False)
+_new_object = object.__new__
+_set_field = object.__setattr__
+
+
+def armed_command(controls: tuple[float, float, float, float]) -> MotorCommand:
+    """MotorCommand(controls, True) without the frozen dataclass's checked __init__: for the
+    per-step paths (the stub's outputs, the HIL link's actuator messages)."""
+    command = _new_object(MotorCommand)
+    _set_field(command, "controls", controls)
+    _set_field(command, "armed", True)
+    return command
 
 
 @dataclass(frozen=True)

@@ -389,14 +389,24 @@ class SensorSuite:
 
     def sample(self, state: VehicleState, time_us: int) -> SensorFrame:
         """The sensor frame for the vehicle state at `time_us` (after the physics step)."""
-        x = state.vector
+        a0, a1, a2, g0, g1, g2, mag, baro, gps = self.sample_values(state.vector, time_us)
+        return SensorFrame(time_us, np.array((a0, a1, a2)), np.array((g0, g1, g2)),
+                           None if mag is None else np.array(mag), baro, gps, self.ground_truth(state))
+
+    def sample_values(self, x: np.ndarray, time_us: int) -> tuple:
+        """`sample` as plain values, for the per-step HIL link (no arrays, no frame): (accel FRD
+        x3, gyro FRD x3, mag FRD tuple or None, baro or None, GPS or None) of the state vector
+        `x` (`physics.state` layout). Draws the same noise as `sample`: use one or the other."""
         imu_row = self.imu_noise.take_row()
         mag_row, baro, gps = self.slow_samples(x, time_us) if time_us >= self.next_slow_us else (-1, None, None)
         a0, a1, a2, g0, g1, g2, m0, m1, m2 = sense(x, self.imu_noise.array, imu_row, self.mag_noise.array, mag_row,
                                                    self.constants)
-        mag = np.array((m0, m1, m2)) if mag_row >= 0 else None
-        return SensorFrame(time_us, np.array((a0, a1, a2)), np.array((g0, g1, g2)), mag, baro, gps,
-                           GroundTruth._of_state(state, self._projection, self._offset_ned))
+        return a0, a1, a2, g0, g1, g2, (m0, m1, m2) if mag_row >= 0 else None, baro, gps
+
+    def ground_truth(self, state: VehicleState) -> GroundTruth:
+        """The ground truth of `state` as `sample` reports it (lazy; the measured position
+        offset applied)."""
+        return GroundTruth._of_state(state, self._projection, self._offset_ned)
 
     def slow_samples(self, x: np.ndarray, time_us: int) -> tuple[int, BaroSample | None, GpsSample | None]:
         """The slower sensors due at `time_us` for the state vector `x` (`physics.state`

@@ -21,6 +21,7 @@ import numpy as np
 from sitl_bridge import frames
 from sitl_bridge.jit import dual, kernel
 from sitl_bridge.physics.simulation import MotorCommand
+from sitl_bridge.physics.state import armed_command
 
 from . import control, mixer, vec
 from .commander import Commander, Home, OffboardSetpoint, Output
@@ -59,16 +60,6 @@ POSITION_CONTROL_PERIOD_US = 8000
 _OFF = MotorCommand((0.0, 0.0, 0.0, 0.0), False)
 _IDLE = MotorCommand((0.0, 0.0, 0.0, 0.0), True)
 _FLY = Output.FLY
-_new_command = object.__new__
-_set_fields = object.__setattr__
-
-
-def _armed_command(controls: tuple[float, float, float, float]) -> MotorCommand:
-    """MotorCommand(controls, True) without the frozen dataclass's checked __init__ (every step)."""
-    command = _new_command(MotorCommand)
-    _set_fields(command, "controls", controls)
-    _set_fields(command, "armed", True)
-    return command
 
 
 # StubAutopilot.control layout: collective thrust, attitude setpoint (w, x, y, z), motor outputs
@@ -210,7 +201,7 @@ class StubAutopilot:
         """The motor command of the last step."""
         if self._command is None:  # the fused `direct` loop leaves the outputs in `control`
             o = _OUTPUTS
-            self._command = _armed_command(tuple(self.control[o:o + 4].tolist()))  # type: ignore[arg-type]
+            self._command = armed_command(tuple(self.control[o:o + 4].tolist()))  # type: ignore[arg-type]
         return self._command
 
     @property
@@ -245,7 +236,7 @@ class StubAutopilot:
                               self.rate_control.gains, self.mixer.constants, self.mixer.state, float(qw), float(qx),
                               float(qy), float(qz), float(wx), float(wy), float(wz), yaw_rate_ff, dt_s,
                               self.commander.landed)
-        self._command = command = _armed_command(u)
+        self._command = command = armed_command(u)
         return command
 
     @property

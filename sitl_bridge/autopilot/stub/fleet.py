@@ -33,6 +33,12 @@ if TYPE_CHECKING:
 SETPOINT_MATCH = 1e-4
 """A stub holds the setpoint sent when each component is this close (m/s)."""
 
+TELEMETRY_BATCH_WALL_S = 0.002
+"""In-process stubs send their telemetry streams at most this often in wall time while the
+lockstep runs (`MavlinkApi` batch_wall_s; the lockstep's `hold()` pumps them out): far fewer
+wake-ups of MAVSDK's thread per simulated second at speed factor 0, still one datagram per
+step or two at real time."""
+
 
 def stub_params(speed_factor: float, extra: Mapping[str, float]) -> ParamTable:
     """px4_params/ with the `wall` timeouts scaled to `speed_factor`, then `extra` (added
@@ -67,7 +73,8 @@ class InProcessStubFleet(AutopilotFleet):
         config = self.config
         for instance in self.instances:
             vehicle = StubVehicle(instance, config.host, ground_truth_estimate=config.ground_truth_estimate,
-                                  params=stub_params(config.speed_factor, config.params))
+                                  params=stub_params(config.speed_factor, config.params),
+                                  telemetry_batch_wall_s=TELEMETRY_BATCH_WALL_S)
             self.vehicles.append(vehicle)
             if not vehicle.connect(config.connect_timeout_s or 10.0):
                 raise SessionError(f"vehicle {instance}: stub could not connect to the HIL link")

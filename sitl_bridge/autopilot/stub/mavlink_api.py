@@ -9,6 +9,14 @@ one, and while the simulation is held simulated time stands still.
 
 `pump()` never blocks: it reads every waiting datagram, handles it, and sends what is due.
 Garbage datagrams are counted in `stats` and ignored.
+
+Batched telemetry (`batch_wall_s` > 0, for an in-process stub pumped by the lockstep): while
+simulated time runs, the streams' messages queue up and go out in one datagram per link every
+`batch_wall_s` of wall time (or every `BATCH_MAX_MESSAGES`), not one datagram per step: each
+datagram wakes the client's receiving thread (MAVSDK), which on a busy machine costs the
+lockstep its CPU. A pump at unchanged simulated time (held: the lockstep's `hold()` and
+`idle()`) sends everything queued, so a client reading while the simulation is held sees the
+same telemetry as without batching. Answers (acks, parameters) always go out at once.
 """
 
 from __future__ import annotations
@@ -47,6 +55,7 @@ d = mavlink.dialect
 
 API_REMOTE_BASE_PORT = API_CLIENT_BASE_PORT  # the stub's name for it
 KEEPALIVE_WALL_S = 1.0
+BATCH_MAX_MESSAGES = 20  # per datagram: well under UDP size limits
 FORCE_DISARM_MAGIC = 21196
 
 # SET_POSITION_TARGET_LOCAL_NED type_mask bits (POSITION_TARGET_TYPEMASK)
@@ -123,13 +132,16 @@ class MavlinkApi:
         the autopilot's instance.
     host: address to bind and to send to (127.0.0.1 by default).
     gcs: also serve the GCS link.
-    clock: wall clock for the keep-alive (time.monotonic; injectable for tests).
+    clock: wall clock for the keep-alive and the batching (time.monotonic; injectable for tests).
+    batch_wall_s: batch the streams' messages over this much wall time while simulated time
+        runs (0: one datagram per pump, for a stub whose pumps may stop without a final one).
     """
 
     def __init__(self, autopilot: StubAutopilot, instance: int | None = None, host: str = "127.0.0.1", *,
                  api_bind_port: int | None = None, api_remote_port: int | None = None, gcs: bool = True,
                  gcs_bind_port: int | None = None, gcs_remote_port: int = GCS_REMOTE_PORT,
-                 keepalive_wall_s: float = KEEPALIVE_WALL_S, clock: Callable[[], float] = time.monotonic) -> None:
+                 keepalive_wall_s: float = KEEPALIVE_WALL_S, clock: Callable[[], float] = time.monotonic,
+                 batch_wall_s: float = 0.0) -> None:
         self.autopilot = autopilot
         self.instance = autopilot.instance if instance is None else instance
         self.system_id = system_id_for(self.instance)
@@ -138,6 +150,8 @@ class MavlinkApi:
         self._packer = MessagePacker(self.system_id, self.component_id)
         self._clock = clock
         self._keepalive_wall_s = keepalive_wall_s
+        self.batch_wall_s = batch_wall_s
+        self._last_flush_wall = -math.inf
         i = self.instance
         self.links: list[_Link] = []
         try:
@@ -204,7 +218,14 @@ class MavlinkApi:
             link = self._link_by_fd.get(fd)
             if link is not None:
                 self._receive(link)
+        running = self.autopilot.time_us != self._last_stream_time_us
         self._send_streams()
+        if running and self.batch_wall_s > 0.0:
+            wall = self._clock()
+            if wall - self._last_flush_wall < self.batch_wall_s and all(
+                    len(link.outbox) < BATCH_MAX_MESSAGES for link in self.links):
+                return  # batched: see the module docstring
+            self._last_flush_wall = wall
         for link in self.links:
             if link.outbox:
                 self._flush(link)

@@ -61,9 +61,13 @@ class MessagePacker:
         flat = self._flat.get(cls, ())
         if flat == ():
             flat = self._learn(cls)
-        if flat is not None:   # no arrays: the common, fast case (the merge and getter run in C)
+        if flat is not None:   # no arrays: the common, fast case (the getter runs in C)
             zeros, getter = flat
-            return self.encoder.pack(cls, *getter({**zeros, **fields}))
+            try:
+                values = getter(fields)  # the streams' builders give every field
+            except KeyError:
+                values = getter({**zeros, **fields})  # missing fields are 0
+            return self.encoder.pack(cls, *values)
         values: list[Any] = []
         for name, length in self._layouts[cls]:
             value = fields.get(name, 0)

@@ -19,15 +19,19 @@ class StubVehicle:
     api: serve the MAVLink API (False: HIL only, e.g. the `direct`-like speed runs).
     gcs: also serve the GCS link (18570+i -> 14550).
     speed_factor: scales `wall` timeouts of px4_params/*.params (see ParamTable).
+    telemetry_batch_wall_s: the API's `batch_wall_s` (in-process, pumped by a lockstep that
+        pumps again when it holds; 0 for a stub in its own process).
     """
 
     def __init__(self, instance: int, host: str = "127.0.0.1", *, ground_truth_estimate: bool = False,
                  params: ParamTable | None = None, api: bool = True, gcs: bool = True,
-                 hil_base_port: int = HIL_BASE_PORT, speed_factor: float | None = None) -> None:
+                 hil_base_port: int = HIL_BASE_PORT, speed_factor: float | None = None,
+                 telemetry_batch_wall_s: float = 0.0) -> None:
         if params is None:
             params = ParamTable(speed_factor=speed_factor)
         self.autopilot = StubAutopilot(instance, params, ground_truth_estimate=ground_truth_estimate)
-        self.api = MavlinkApi(self.autopilot, instance, host, gcs=gcs) if api else None
+        self.api = MavlinkApi(self.autopilot, instance, host, gcs=gcs,
+                              batch_wall_s=telemetry_batch_wall_s) if api else None
         self.hil = HilClient(self.autopilot, instance, host, hil_base_port, api=self.api)
 
     @property
