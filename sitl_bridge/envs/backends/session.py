@@ -191,7 +191,7 @@ class SessionBackend:
         try:
             slow = self._stop_in_air()
             if not slow:
-                self.last_in_air_refusal = "still moving after the stop"
+                self.last_in_air_refusal = "still moving or turning after the stop"
                 return False
             seeds = [sensor_seed(seed, k) for k in range(self.num_drones)]  # as SimSession.reset
             with session.exclusive():
@@ -214,15 +214,17 @@ class SessionBackend:
 
     def _stop_in_air(self) -> bool:
         """Zero velocity setpoints, held until every vehicle is slower than
-        `in_air_stop_speed_m_s` (at most `in_air_stop_timeout_s` of simulated time)."""
+        `in_air_stop_speed_m_s` and turns slower than `in_air_stop_rate_rad_s` (at most
+        `in_air_stop_timeout_s` of simulated time)."""
         session, fleet, start = self._session(), self._fleet(), EPISODE_START
         chunk_s = nearest_whole_steps_s(start.in_air_stop_check_s, session.step_us)
         fleet.fly([np.zeros(3)] * self.num_drones, chunk_s)
         waited = chunk_s
         while True:
-            speeds = [float(np.linalg.norm(session.vehicle_state(k).velocity_enu_m_s))
-                      for k in range(self.num_drones)]
-            if max(speeds) <= start.in_air_stop_speed_m_s:
+            states = [session.vehicle_state(k) for k in range(self.num_drones)]
+            if all(np.linalg.norm(s.velocity_enu_m_s) <= start.in_air_stop_speed_m_s
+                   and np.linalg.norm(s.angular_velocity_flu_rad_s) <= start.in_air_stop_rate_rad_s
+                   for s in states):
                 return True
             if waited >= start.in_air_stop_timeout_s:
                 return False
