@@ -220,18 +220,11 @@ def _parallel_worker(autopilot: str, px4_bin: str | None, instance_base: int, wi
             env.close()
 
 
-def _parallel_rtf(workers: int, size: Size, sim_s: float, windows: int = 1, autopilot: str = "direct",
+def _parallel_rtf(bases: list[int], size: Size, sim_s: float, windows: int = 1, autopilot: str = "direct",
                   px4_bin: str | None = None) -> tuple[list[float], list[tuple[int, ...]]]:
-    """Aggregate real-time factor of `workers` processes each flying an env, per timed
-    window; and the instances each worker flew (session backends)."""
-    if autopilot == "px4":
-        from sitl_bridge.autopilot.px4.allocation import free_px4_instances
-
-        # One PX4 instance each, free now; every worker's fleet claims its own at start (a
-        # worker whose instance got taken meanwhile moves to the next free one).
-        bases: list[int] = list(free_px4_instances(workers))
-    else:
-        bases = [0] * workers
+    """Aggregate real-time factor of one worker process per instance base in `bases`, each
+    flying an env, per timed window; and the instances each worker flew (session backends)."""
+    workers = len(bases)
     ctx = mp.get_context("spawn")  # a fresh interpreter: no pybullet state copied by fork
     barrier, results = ctx.Barrier(workers), ctx.Queue()
     procs = [ctx.Process(target=_parallel_worker, args=(autopilot, px4_bin, base, windows, sim_s,
@@ -260,8 +253,8 @@ def _parallel_rtf(workers: int, size: Size, sim_s: float, windows: int = 1, auto
 
 def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
     reps = max(1, size.reps - 1)
-    one = [_parallel_rtf(1, size, size.parallel_sim_s)[0][0] for _ in range(reps)]
-    two = [_parallel_rtf(2, size, size.parallel_sim_s)[0][0] for _ in range(reps)]
+    one = [_parallel_rtf([0], size, size.parallel_sim_s)[0][0] for _ in range(reps)]
+    two = [_parallel_rtf([0, 0], size, size.parallel_sim_s)[0][0] for _ in range(reps)]
     return {"workers_1": _rtf_entry(one, bare), "workers_2": _rtf_entry(two, bare),
             "speedup_2_over_1": statistics.median(two) / statistics.median(one),
             "cpu_count": os.cpu_count()}
@@ -270,10 +263,14 @@ def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
 def _px4_parallel_case(size: Size, bare: float, px4_bin: str) -> dict[str, Any]:
     """Env steps/s of one px4 env process against two at once (aggregate), each worker with
     its own PX4; one PX4 start per worker count, `reps` timed windows after it."""
+    from sitl_bridge.autopilot.px4.allocation import free_px4_instances
+
     step_s = _step_s()
     entries = {}
     for workers in (1, 2):
-        rtfs, instances = _parallel_rtf(workers, size, size.px4_parallel_sim_s, windows=size.reps,
+        # One PX4 instance each, free now; each worker's fleet claims its own when it starts
+        # (one whose instance was taken meanwhile moves on to the next free one).
+        rtfs, instances = _parallel_rtf(list(free_px4_instances(workers)), size, size.px4_parallel_sim_s, windows=size.reps,
                                         autopilot="px4", px4_bin=px4_bin)
         steps = [rtf / step_s for rtf in rtfs]
         entries[f"workers_{workers}"] = _rtf_entry(rtfs, bare, steps_per_s=_spread(steps),

@@ -53,6 +53,9 @@ from sitl_bridge.session import SessionError, SimSession
 from sitl_bridge.world import World
 from sitl_bridge.world.clock import nearest_whole_steps_s
 
+START_ATTEMPTS = 3
+"""Starts on freshly picked instances when another run took the picked ones first."""
+
 
 class SessionBackend:
     """A `SimSession` with a MAVSDK `Fleet`, flown through the Backend API."""
@@ -138,19 +141,28 @@ class SessionBackend:
         return self.fleet
 
     def _start(self, seed: int) -> None:
-        options = dict(self._session_options)
-        # Parallel envs of a kind with few instances (px4: 0..9) take free ones, not a busy one.
-        options["instance_base"] = env_kind(self.name).fleet_class().pick_instance_base(
-            self.num_drones, options["instance_base"])
-        session = SimSession(self.world, seed=seed, **options)
-        try:
-            session.start()
-            self.session = session
-            self.fleet = Fleet(session.instances, clock=session).connect()
-        except BaseException:
-            self.session = session
-            self._stop()
-            raise
+        fleet_class = env_kind(self.name).fleet_class()
+        preferred = self._session_options["instance_base"]
+        for attempt in range(START_ATTEMPTS):
+            # Parallel envs of a kind with few instances (px4: 0..9) take free ones, not a busy one.
+            base = fleet_class.pick_instance_base(self.num_drones, preferred)
+            session = SimSession(self.world, seed=seed, **{**self._session_options, "instance_base": base})
+            try:
+                session.start()
+                self.session = session
+                self.fleet = Fleet(session.instances, clock=session).connect()
+                break
+            except Exception:
+                self.session = session
+                self._stop()
+                # The pick is not a claim: a run starting at the same moment may have taken the
+                # same instances first (their ports or lock files). Then the next pick differs.
+                if attempt + 1 == START_ATTEMPTS or fleet_class.pick_instance_base(self.num_drones, preferred) == base:
+                    raise
+            except BaseException:
+                self.session = session
+                self._stop()
+                raise
         assert session.sim is not None
         self.lidar = Lidar(session.sim, [v.lidar for v in self.world.vehicles])
 
