@@ -9,7 +9,8 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   measured before the run and again right before every case; a case's `fraction_of_bare` uses
   the figure measured next to it (`bare_rtf_adjacent`), since a shared machine's load drifts.
 * `direct`, `direct_ground_truth`: one `direct` env of the obstacle scenario (sensors + the
-  stub's estimator and cascade at 250 Hz; the ground-truth estimator), random actions.
+  stub's estimator and cascade at 250 Hz; the ground-truth estimator), random actions;
+  every single-env case also gives `steps_per_s` (env steps per wall second, resets included).
 * `batched`: `make_vec_env(num_envs=N)` of the same scenario, aggregate over the N copies.
 * `stub`: one env on the full protocol path (HIL TCP + stub + MAVLink UDP + MAVSDK), speed 0.
 * `px4`: the same with real PX4 when `PX4_BIN` is set, else `{"skipped": reason}`.
@@ -19,8 +20,9 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
 * `parallel`: `direct` envs in 1 and 2 worker processes, aggregate real-time factor and the
   speed-up from 1 to 2 workers (about 2 on two idle cores).
 * `px4_parallel`: the same with `px4` envs, each worker its own PX4 instance (claimed in 0..9
-  through `autopilot.px4.allocation`, never shared), with env steps per second: one PX4-backed
-  env process against two at once. Needs `PX4_BIN`, else `{"skipped": reason}`.
+  through `autopilot.px4.allocation`, never shared; `instances` says which), in env steps per
+  wall second (`steps_per_s`): one PX4-backed env process against two at once, `reps` timed
+  windows after one PX4 start per worker. Needs `PX4_BIN`, else `{"skipped": reason}`.
 """
 
 from __future__ import annotations
