@@ -7,6 +7,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 
 def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     from sitl_bridge.bench.suite import KEYS
@@ -19,7 +21,7 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     result = json.loads(out.read_text())
     for key in KEYS:
         assert key in result, key
-    assert result["px4"] == {"skipped": "PX4_BIN not set"}
+    assert result["px4"] == result["px4_parallel"] == {"skipped": "PX4_BIN not set"}
     bare = result["physics"]["rtf"]["median"]
     assert bare > 0 and result["physics"]["fraction_of_bare"]["median"] == 1.0
     for key in ("direct", "direct_ground_truth", "batched", "stub", "train_steps_per_s"):
@@ -30,3 +32,19 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     assert result["train_steps_per_s"]["updates"] > 0  # DQN updates were part of the timing
     assert set(result["reset_s"]) == {"direct", "stub"}
     assert result["parallel"]["speedup_2_over_1"] > 0
+
+
+def test_px4_parallel_case_flies_two_px4_instances_at_once(px4_bin: str) -> None:
+    """Each worker process flies its own PX4 instance, in 0..9 (own API port), never a shared one."""
+    from sitl_bridge.bench.suite import SIZES, _px4_parallel_case
+
+    result = _px4_parallel_case(SIZES["smoke"], 1.0, px4_bin)
+    one, two = result["workers_1"], result["workers_2"]
+    assert len(one["instances"]) == 1 and len(two["instances"]) == 2
+    flown = [i for instances in two["instances"] for i in instances]
+    assert len(set(flown)) == 2 and all(0 <= i <= 9 for i in flown)
+    for entry in (one, two):
+        assert entry["reps"] == SIZES["smoke"].reps
+        assert 0 < entry["steps_per_s"]["min"] <= entry["steps_per_s"]["median"] <= entry["steps_per_s"]["max"]
+        assert entry["rtf"]["median"] == pytest.approx(entry["steps_per_s"]["median"] * result["step_s"])
+    assert result["speedup_2_over_1"] == two["rtf"]["median"] / one["rtf"]["median"]

@@ -9,7 +9,8 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   measured before the run and again right before every case; a case's `fraction_of_bare` uses
   the figure measured next to it (`bare_rtf_adjacent`), since a shared machine's load drifts.
 * `direct`, `direct_ground_truth`: one `direct` env of the obstacle scenario (sensors + the
-  stub's estimator and cascade at 250 Hz; the ground-truth estimator), random actions.
+  stub's estimator and cascade at 250 Hz; the ground-truth estimator), random actions;
+  every single-env case also gives `steps_per_s` (env steps per wall second, resets included).
 * `batched`: `make_vec_env(num_envs=N)` of the same scenario, aggregate over the N copies.
 * `stub`: one env on the full protocol path (HIL TCP + stub + MAVLink UDP + MAVSDK), speed 0.
 * `px4`: the same with real PX4 when `PX4_BIN` is set, else `{"skipped": reason}`.
@@ -18,6 +19,10 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
 * `parallel`: `direct` envs in 1 and 2 worker processes, aggregate real-time factor and the
   speed-up from 1 to 2 workers (about 2 on two idle cores).
+* `px4_parallel`: the same with `px4` envs, each worker its own PX4 instance (claimed in 0..9
+  through `autopilot.px4.allocation`, never shared; `instances` says which), in env steps per
+  wall second (`steps_per_s`): one PX4-backed env process against two at once, `reps` timed
+  windows after one PX4 start per worker. Needs `PX4_BIN`, else `{"skipped": reason}`.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ from sitl_bridge.data_paths import worlds_dir
 
 SCENARIO = "obstacle.yaml"
 KEYS = ("physics", "direct", "direct_ground_truth", "batched", "stub", "px4", "reset_s",
-        "train_steps_per_s", "parallel")
+        "train_steps_per_s", "parallel", "px4_parallel")
 
 
 @dataclass(frozen=True)
@@ -58,12 +63,14 @@ class Size:
     resets: int
     train_episodes: int
     parallel_sim_s: float
+    px4_parallel_sim_s: float
+    """Simulated seconds per timed window of `px4_parallel` (each of `reps` windows, per worker)."""
 
 
 SIZES = {
-    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 40, 100.0),
-    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 12, 30.0),
-    "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 2, 2.0),  # for the test: seconds, figures meaningless
+    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 40, 100.0, 60.0),
+    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 12, 30.0, 20.0),
+    "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 2, 2.0, 2.0),  # for the test: seconds, figures meaningless
 }
 
 
@@ -121,7 +128,8 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
             resets.append(time.perf_counter() - t0)
     finally:
         env.close()
-    return _rtf_entry(rtfs, bare, backend=backend, estimator=estimator), resets
+    return _rtf_entry(rtfs, bare, backend=backend, estimator=estimator,
+                      steps_per_s=_spread([rtf / step_s for rtf in rtfs])), resets
 
 
 def _batched_case(size: Size, bare: float) -> dict[str, Any]:
@@ -146,14 +154,13 @@ def _batched_case(size: Size, bare: float) -> dict[str, Any]:
 
 def _train_case(size: Size, bare: float) -> dict[str, Any]:
     """DQN env steps per wall second with O's `train:` settings (updates every step)."""
-    from sitl_bridge.envs import load_scenario
     from sitl_bridge.rl.config import load_train_config
     from sitl_bridge.rl.drones_env import scenario_env_factory
     from sitl_bridge.rl.run_dir import RunSpec
     from sitl_bridge.rl.trainer import Trainer
 
     world = str(_scenario())
-    step_s = load_scenario(world).task.action.step_s
+    step_s = _step_s()
     config = load_train_config(world, {"eval_every": 0})  # O as shipped, no evaluation pauses
     rates = []
     with tempfile.TemporaryDirectory(prefix="sitl-bench-") as out, \
@@ -176,50 +183,109 @@ def _train_case(size: Size, bare: float) -> dict[str, Any]:
     return entry
 
 
-def _parallel_worker(sim_s: float, warmup_s: float, barrier, results) -> None:
+def _parallel_worker(autopilot: str, px4_bin: str | None, instance_base: int, windows: int, sim_s: float,
+                     warmup_s: float, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
+    """Fly one env in this worker process: warm up, then `windows` timed windows of `sim_s`
+    simulated seconds, each started together with the other workers' (`barrier`). Puts
+    (window, simulated s, wall start, wall end, instances flown) per window, or ("failed",
+    text) once."""
     from sitl_bridge.envs import make_env
 
-    env = make_env(_scenario(), autopilot="direct", seed=os.getpid())
-    rng = np.random.default_rng(0)
-    step_s = env.scenario.task.action.step_s
+    env = None
+    try:
+        env = make_env(_scenario(), autopilot=autopilot, speed_factor=0.0, seed=os.getpid(),
+                       instance_base=instance_base, px4_bin=px4_bin)
+        rng = np.random.default_rng(0)
+        step_s = env.scenario.task.action.step_s
 
-    def step() -> float:
-        _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
-        if terminated or truncated:
-            env.reset()
-        return step_s
+        def step() -> float:
+            _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
+            if terminated or truncated:
+                env.reset()  # counted: training pays for it too
+            return step_s
 
-    env.reset()
-    _fly(step, warmup_s)
-    barrier.wait()
-    start = time.perf_counter()
-    _fly(step, sim_s)
-    results.put((sim_s, start, time.perf_counter()))
-    env.close()
+        env.reset()
+        _fly(step, warmup_s)  # a PX4 boot and takeoff happen here, before any window
+        session = getattr(env.backend, "session", None)  # session backends only (stub, px4)
+        instances = tuple(session.instances) if session is not None else ()
+        for window in range(windows):
+            barrier.wait(timeout=600)
+            start, flown = time.perf_counter(), 0.0
+            while flown < sim_s:
+                flown += step()
+            results.put((window, flown, start, time.perf_counter(), instances))
+    except Exception as exc:  # reported by the parent; the others must not wait for this one
+        barrier.abort()
+        results.put(("failed", f"{type(exc).__name__}: {exc}"))
+    finally:
+        if env is not None:
+            env.close()
 
 
-def _parallel_rtf(workers: int, size: Size) -> float:
-    """Aggregate real-time factor of `workers` processes each flying a `direct` env."""
+def _parallel_rtf(bases: list[int], size: Size, sim_s: float, windows: int = 1, autopilot: str = "direct",
+                  px4_bin: str | None = None) -> tuple[list[float], list[tuple[int, ...]]]:
+    """Aggregate real-time factor of one worker process per instance base in `bases`, each
+    flying an env, per timed window; and the instances each worker flew (session backends)."""
+    workers = len(bases)
     ctx = mp.get_context("spawn")  # a fresh interpreter: no pybullet state copied by fork
     barrier, results = ctx.Barrier(workers), ctx.Queue()
-    procs = [ctx.Process(target=_parallel_worker, args=(size.parallel_sim_s, size.warmup_s, barrier, results))
-             for _ in range(workers)]
+    procs = [ctx.Process(target=_parallel_worker, args=(autopilot, px4_bin, base, windows, sim_s,
+                                                        size.warmup_s, barrier, results))
+             for base in bases]
     for proc in procs:
         proc.start()
-    runs = [results.get(timeout=600) for _ in procs]
-    for proc in procs:
-        proc.join()
-    total = sum(r[0] for r in runs)
-    return total / (max(r[2] for r in runs) - min(r[1] for r in runs))
+    try:
+        runs = []
+        for _ in range(workers * windows):
+            runs.append(results.get(timeout=600))
+            if runs[-1][0] == "failed":  # the others stop too (their barrier is broken)
+                raise RuntimeError(f"{autopilot} worker: {runs[-1][1]}")
+    finally:
+        for proc in procs:
+            proc.join(timeout=60)
+            if proc.is_alive():
+                proc.kill()
+                proc.join()
+    rtfs = []
+    for window in range(windows):
+        mine = [r for r in runs if r[0] == window]
+        rtfs.append(sum(r[1] for r in mine) / (max(r[3] for r in mine) - min(r[2] for r in mine)))
+    return rtfs, [r[4] for r in runs if r[0] == 0]
 
 
 def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
     reps = max(1, size.reps - 1)
-    one = [_parallel_rtf(1, size) for _ in range(reps)]
-    two = [_parallel_rtf(2, size) for _ in range(reps)]
+    one = [_parallel_rtf([0], size, size.parallel_sim_s)[0][0] for _ in range(reps)]
+    two = [_parallel_rtf([0, 0], size, size.parallel_sim_s)[0][0] for _ in range(reps)]
     return {"workers_1": _rtf_entry(one, bare), "workers_2": _rtf_entry(two, bare),
             "speedup_2_over_1": statistics.median(two) / statistics.median(one),
             "cpu_count": os.cpu_count()}
+
+
+def _px4_parallel_case(size: Size, bare: float, px4_bin: str) -> dict[str, Any]:
+    """Env steps/s of one px4 env process against two at once (aggregate), each worker with
+    its own PX4; one PX4 start per worker count, `reps` timed windows after it."""
+    from sitl_bridge.autopilot.px4.allocation import free_px4_instances
+
+    step_s = _step_s()
+    entries = {}
+    for workers in (1, 2):
+        # One PX4 instance each, free now; each worker's fleet claims its own when it starts
+        # (one whose instance was taken meanwhile moves on to the next free one).
+        rtfs, instances = _parallel_rtf(list(free_px4_instances(workers)), size, size.px4_parallel_sim_s, windows=size.reps,
+                                        autopilot="px4", px4_bin=px4_bin)
+        steps = [rtf / step_s for rtf in rtfs]
+        entries[f"workers_{workers}"] = _rtf_entry(rtfs, bare, steps_per_s=_spread(steps),
+                                                   instances=[list(i) for i in instances])
+    speedup = entries["workers_2"]["rtf"]["median"] / entries["workers_1"]["rtf"]["median"]
+    return {**entries, "speedup_2_over_1": speedup, "step_s": step_s, "cpu_count": os.cpu_count()}
+
+
+def _step_s() -> float:
+    """Simulated seconds per env step (one action) of the bench's scenario."""
+    from sitl_bridge.envs import load_scenario
+
+    return load_scenario(str(_scenario())).task.action.step_s
 
 
 def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
@@ -242,9 +308,10 @@ def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
         ("px4", lambda bare: _env_case("px4", size, bare, px4_bin=px4_bin)),
         ("train_steps_per_s", lambda bare: _train_case(size, bare)),
         ("parallel", lambda bare: _parallel_case(size, bare)),
+        ("px4_parallel", lambda bare: _px4_parallel_case(size, bare, px4_bin or "")),
     ]
     for key, case in cases:
-        if key == "px4" and not px4_bin:
+        if key in ("px4", "px4_parallel") and not px4_bin:
             result[key] = {"skipped": "PX4_BIN not set"}
             log(f"  {key}: skipped (PX4_BIN not set)")
             continue
@@ -271,6 +338,10 @@ def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
 
 
 def _summary(figures: dict[str, Any]) -> str:
+    if "workers_2" in figures and "steps_per_s" in figures["workers_2"]:
+        return (f"1 worker {figures['workers_1']['steps_per_s']['median']:.1f} env steps/s, 2 workers "
+                f"{figures['workers_2']['steps_per_s']['median']:.1f} aggregate, "
+                f"speed-up {figures['speedup_2_over_1']:.2f}")
     if "workers_2" in figures:
         return (f"1 worker {figures['workers_1']['rtf']['median']:.0f}x, 2 workers "
                 f"{figures['workers_2']['rtf']['median']:.0f}x aggregate, "

@@ -52,6 +52,10 @@ class EpisodeStart:
     """The episode start may take this long before the backend gives up."""
     in_air_stop_speed_m_s: float = 0.1
     """A reset in the air (kinds that fly on, `px4`) teleports only vehicles this slow ..."""
+    in_air_stop_rate_rad_s: float = 0.25
+    """... and turning slower than this (a vehicle that has just braked still pitches back to
+    level; the fleet's own check refuses the reset while it turns, and a refusal costs a
+    restart) ..."""
     in_air_stop_check_s: float = 0.2
     """... checked this often under a zero velocity setpoint after the episode's end ..."""
     in_air_stop_timeout_s: float = 3.0

@@ -53,6 +53,9 @@ from sitl_bridge.session import SessionError, SimSession
 from sitl_bridge.world import World
 from sitl_bridge.world.clock import nearest_whole_steps_s
 
+START_ATTEMPTS = 3
+"""Starts on freshly picked instances when another run took the picked ones first."""
+
 
 class SessionBackend:
     """A `SimSession` with a MAVSDK `Fleet`, flown through the Backend API."""
@@ -138,19 +141,28 @@ class SessionBackend:
         return self.fleet
 
     def _start(self, seed: int) -> None:
-        options = dict(self._session_options)
-        # Parallel envs of a kind with few instances (px4: 0..9) take free ones, not a busy one.
-        options["instance_base"] = env_kind(self.name).fleet_class().pick_instance_base(
-            self.num_drones, options["instance_base"])
-        session = SimSession(self.world, seed=seed, **options)
-        try:
-            session.start()
-            self.session = session
-            self.fleet = Fleet(session.instances, clock=session).connect()
-        except BaseException:
-            self.session = session
-            self._stop()
-            raise
+        fleet_class = env_kind(self.name).fleet_class()
+        preferred = self._session_options["instance_base"]
+        for attempt in range(START_ATTEMPTS):
+            # Parallel envs of a kind with few instances (px4: 0..9) take free ones, not a busy one.
+            base = fleet_class.pick_instance_base(self.num_drones, preferred)
+            session = SimSession(self.world, seed=seed, **{**self._session_options, "instance_base": base})
+            try:
+                session.start()
+                self.session = session
+                self.fleet = Fleet(session.instances, clock=session).connect()
+                break
+            except Exception:
+                self.session = session
+                self._stop()
+                # The pick is not a claim: a run starting at the same moment may have taken the
+                # same instances first (their ports or lock files). Then the next pick differs.
+                if attempt + 1 == START_ATTEMPTS or fleet_class.pick_instance_base(self.num_drones, preferred) == base:
+                    raise
+            except BaseException:
+                self.session = session
+                self._stop()
+                raise
         assert session.sim is not None
         self.lidar = Lidar(session.sim, [v.lidar for v in self.world.vehicles])
 
@@ -191,7 +203,7 @@ class SessionBackend:
         try:
             slow = self._stop_in_air()
             if not slow:
-                self.last_in_air_refusal = "still moving after the stop"
+                self.last_in_air_refusal = "still moving or turning after the stop"
                 return False
             seeds = [sensor_seed(seed, k) for k in range(self.num_drones)]  # as SimSession.reset
             with session.exclusive():
@@ -214,15 +226,17 @@ class SessionBackend:
 
     def _stop_in_air(self) -> bool:
         """Zero velocity setpoints, held until every vehicle is slower than
-        `in_air_stop_speed_m_s` (at most `in_air_stop_timeout_s` of simulated time)."""
+        `in_air_stop_speed_m_s` and turns slower than `in_air_stop_rate_rad_s` (at most
+        `in_air_stop_timeout_s` of simulated time)."""
         session, fleet, start = self._session(), self._fleet(), EPISODE_START
         chunk_s = nearest_whole_steps_s(start.in_air_stop_check_s, session.step_us)
         fleet.fly([np.zeros(3)] * self.num_drones, chunk_s)
         waited = chunk_s
         while True:
-            speeds = [float(np.linalg.norm(session.vehicle_state(k).velocity_enu_m_s))
-                      for k in range(self.num_drones)]
-            if max(speeds) <= start.in_air_stop_speed_m_s:
+            states = [session.vehicle_state(k) for k in range(self.num_drones)]
+            if all(np.linalg.norm(s.velocity_enu_m_s) <= start.in_air_stop_speed_m_s
+                   and np.linalg.norm(s.angular_velocity_flu_rad_s) <= start.in_air_stop_rate_rad_s
+                   for s in states):
                 return True
             if waited >= start.in_air_stop_timeout_s:
                 return False
