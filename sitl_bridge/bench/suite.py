@@ -99,6 +99,21 @@ def _fly(step: Callable[[], float], sim_s: float) -> float:
     return flown / (time.perf_counter() - start)
 
 
+def _random_stepper(env: Any) -> Callable[[], float]:
+    """One random action per call (resets included: training pays for them too); returns the
+    simulated seconds it flew."""
+    rng = np.random.default_rng(0)
+    step_s = env.scenario.task.action.step_s
+
+    def step() -> float:
+        _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
+        if terminated or truncated:
+            env.reset()
+        return step_s
+
+    return step
+
+
 def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
               px4_bin: str | None = None) -> tuple[dict[str, Any], list[float]]:
     """(figures, reset wall seconds) for one single env on `backend`."""
@@ -108,15 +123,7 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
     instance = free_instance_base(1) if backend != "direct" else 0
     env = make_env(_scenario(), autopilot=backend, speed_factor=0.0, seed=0, instance_base=instance,
                    estimator=estimator, px4_bin=px4_bin)
-    rng = np.random.default_rng(0)
-    step_s = env.scenario.task.action.step_s
-
-    def step() -> float:
-        _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
-        if terminated or truncated:
-            env.reset()  # counted: training pays for it too
-        return step_s
-
+    step = _random_stepper(env)
     try:
         env.reset(seed=0)
         _fly(step, size.warmup_s)
@@ -129,7 +136,7 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
     finally:
         env.close()
     return _rtf_entry(rtfs, bare, backend=backend, estimator=estimator,
-                      steps_per_s=_spread([rtf / step_s for rtf in rtfs])), resets
+                      steps_per_s=_spread([rtf / _step_s() for rtf in rtfs])), resets
 
 
 def _batched_case(size: Size, bare: float) -> dict[str, Any]:
@@ -195,15 +202,7 @@ def _parallel_worker(autopilot: str, px4_bin: str | None, instance_base: int, wi
     try:
         env = make_env(_scenario(), autopilot=autopilot, speed_factor=0.0, seed=os.getpid(),
                        instance_base=instance_base, px4_bin=px4_bin)
-        rng = np.random.default_rng(0)
-        step_s = env.scenario.task.action.step_s
-
-        def step() -> float:
-            _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
-            if terminated or truncated:
-                env.reset()  # counted: training pays for it too
-            return step_s
-
+        step = _random_stepper(env)
         env.reset()
         _fly(step, warmup_s)  # a PX4 boot and takeoff happen here, before any window
         session = getattr(env.backend, "session", None)  # session backends only (stub, px4)
