@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -145,18 +146,14 @@ def short_scenario(tmp_path: Path, max_steps: int = 6) -> str:
     return str(path)
 
 
-def test_real_env_run_killed_with_sigkill_resumes_exactly(tmp_path: Path) -> None:
+def sigkill_training_midway(args: list[str], out: Path, pause_s: Callable[[list[dict]], float]) -> None:
+    """Run `sitl-bridge <args> --out out` in a child process, wait until two episode records are
+    logged, let it fly on for `pause_s(records)` wall seconds, then SIGKILL it (no clean-up)."""
     import signal
     import subprocess
     import sys
     import time
 
-    world = short_scenario(tmp_path)
-    args = ["train", world, "--episodes", "6", *TINY[:-1], "--eval-episodes", "0", "--no-progress"]
-    assert cli(*args, "--out", str(tmp_path / "ref")) == 0
-    reference = read_records(only_run(tmp_path / "ref") / "episodes.jsonl")
-
-    out = tmp_path / "killed"
     code = "import sys; from tests.test_rl_cli import cli; sys.exit(cli(*sys.argv[1:]))"
     proc = subprocess.Popen([sys.executable, "-c", code, *args, "--out", str(out)], cwd=REPO,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -167,9 +164,7 @@ def test_real_env_run_killed_with_sigkill_resumes_exactly(tmp_path: Path) -> Non
             if runs and runs[0].read_text().count("\n") >= 2:
                 break
             time.sleep(0.02)
-        # Into the third episode: a random fraction of the time an episode has taken so far.
-        episode_s = np.mean([r["wall_time_s"] for r in read_records(runs[0])])
-        time.sleep(np.random.default_rng().uniform(0.2, 0.8) * episode_s)
+        time.sleep(pause_s(read_records(runs[0])))
         assert proc.poll() is None, "the run ended before it could be killed"
         proc.send_signal(signal.SIGKILL)
         assert proc.wait(timeout=30) == -signal.SIGKILL
@@ -177,6 +172,18 @@ def test_real_env_run_killed_with_sigkill_resumes_exactly(tmp_path: Path) -> Non
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_real_env_run_killed_with_sigkill_resumes_exactly(tmp_path: Path) -> None:
+    world = short_scenario(tmp_path)
+    args = ["train", world, "--episodes", "6", *TINY[:-1], "--eval-episodes", "0", "--no-progress"]
+    assert cli(*args, "--out", str(tmp_path / "ref")) == 0
+    reference = read_records(only_run(tmp_path / "ref") / "episodes.jsonl")
+
+    out = tmp_path / "killed"
+    # Into the third episode: a random fraction of the time an episode has taken so far.
+    sigkill_training_midway(args, out, lambda records: np.random.default_rng().uniform(0.2, 0.8)
+                            * np.mean([r["wall_time_s"] for r in records]))
     run = only_run(out)
     assert cli("train", "--resume", str(run), "--no-progress") == 0
     records = read_records(run / "episodes.jsonl")

@@ -5,16 +5,20 @@ one; multi-drone scenarios are refused in one line."""
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from test_rl_cli import REPO, TINY, TWO_DRONES, cli, only_run, short_scenario
+from test_rl_cli import (
+    REPO,
+    TINY,
+    TWO_DRONES,
+    cli,
+    only_run,
+    short_scenario,
+    sigkill_training_midway,
+)
 from test_rl_helpers import corridor_factory, tiny_config
 
 from sitl_bridge.rl.checkpoint import list_checkpoints, load_checkpoint
@@ -99,26 +103,9 @@ def test_a_stopped_then_resumed_run_equals_the_uninterrupted_one(world: str, ref
 
 def test_a_run_killed_mid_wave_resumes_exactly(world: str, reference: Path, tmp_path: Path) -> None:
     out = tmp_path / "killed"
-    code = "import sys; from tests.test_rl_cli import cli; sys.exit(cli(*sys.argv[1:]))"
-    proc = subprocess.Popen([sys.executable, "-c", code, "train", world, *ARGS, "--out", str(out)], cwd=REPO,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 240
-        while time.monotonic() < deadline and proc.poll() is None:
-            runs = list(out.glob("*/episodes.jsonl")) if out.exists() else []
-            if runs and runs[0].read_text().count("\n") >= 2:  # the first wave is logged
-                break
-            time.sleep(0.02)
-        # Into the second wave: a random fraction of the time the first one took.
-        wave_s = max(r["wall_time_s"] for r in read_records(runs[0]))
-        time.sleep(np.random.default_rng().uniform(0.2, 0.8) * wave_s)
-        assert proc.poll() is None, "the run ended before it could be killed"
-        proc.send_signal(signal.SIGKILL)
-        assert proc.wait(timeout=30) == -signal.SIGKILL
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    # Into the second wave: a random fraction of the time the first one took.
+    sigkill_training_midway(["train", world, *ARGS], out, lambda records: np.random.default_rng().uniform(0.2, 0.8)
+                            * max(r["wall_time_s"] for r in records))
     run = only_run(out)
     logged = read_records(run / "episodes.jsonl")
     assert len(logged) % 2 == 0 and len(logged) < EPISODES  # whole waves only: the one in flight is lost
