@@ -277,12 +277,13 @@ class HilLink:
     def state_due(self, time_us: int) -> bool:
         """Whether the step at simulated `time_us` carries HIL_STATE_QUATERNION (then
         `send_sensor_values` needs its ground truth)."""
-        if self.state_interval_us < 0:
-            return False
+        return self.state_interval_us >= 0 and self._wire_us(time_us) >= self._next_state_wire_us
+
+    def _wire_us(self, time_us: int) -> int:
+        """The autopilot-clock time the step at simulated `time_us` goes out at: after a
+        simulation reset in place the autopilot's clock continues instead of going back."""
         wire_us = time_us + self._time_offset_us
-        if wire_us <= self._last_sent_wire_us:
-            wire_us = self._last_sent_wire_us + self.step_us  # as `send_sensor_values` will
-        return wire_us >= self._next_state_wire_us
+        return wire_us if wire_us > self._last_sent_wire_us else self._last_sent_wire_us + self.step_us
 
     def send_sensor_values(self, time_us: int, values: tuple, truth: Any = None) -> None:
         """`send_sensor_frame` from the values of `SensorSuite.sample_values` (accel and gyro
@@ -291,11 +292,8 @@ class HilLink:
         client = self._client
         if client is None:
             raise LinkClosed(f"vehicle {self.instance}: no autopilot connected", instance=self.instance)
-        wire_us = time_us + self._time_offset_us
-        if wire_us <= self._last_sent_wire_us:
-            # Simulation reset in place: continue the autopilot's clock instead.
-            self._time_offset_us = self._last_sent_wire_us + self.step_us - time_us
-            wire_us = self._last_sent_wire_us + self.step_us
+        wire_us = self._wire_us(time_us)
+        self._time_offset_us = wire_us - time_us  # changes only after a reset in place
         data = self._encode_sensor(values, wire_us)
         gps = values[8]
         if gps is not None:

@@ -152,17 +152,14 @@ class SessionBackend:
                 self.session = session
                 self.fleet = Fleet(session.instances, clock=session).connect()
                 break
-            except Exception:
+            except BaseException as exc:
                 self.session = session
                 self._stop()
                 # The pick is not a claim: a run starting at the same moment may have taken the
                 # same instances first (their ports or lock files). Then the next pick differs.
-                if attempt + 1 == START_ATTEMPTS or fleet_class.pick_instance_base(self.num_drones, preferred) == base:
+                if (not isinstance(exc, Exception) or attempt + 1 == START_ATTEMPTS
+                        or fleet_class.pick_instance_base(self.num_drones, preferred) == base):
                     raise
-            except BaseException:
-                self.session = session
-                self._stop()
-                raise
         assert session.sim is not None
         self.lidar = Lidar(session.sim, [v.lidar for v in self.world.vehicles])
 
