@@ -96,6 +96,24 @@ def test_separation_reward_grows_as_the_drones_close_in(tmp_path: Path) -> None:
     assert penalties[2] == pytest.approx(-10 * (1 - 4.0 / 9.5), abs=1.5)
 
 
+def test_give_way_separation_is_paid_only_by_the_drone_without_right_of_way(tmp_path: Path) -> None:
+    def edit(root: dict) -> None:
+        root["task"]["reward"] = {"separation": {"scale": -10, "distance_m": 9.5, "give_way": True}}
+        root["task"]["action"] = {"frame": "goal"}
+        root["task"]["priority"] = "lower_coordinate_yields"
+
+    env = make_parallel_env(_write(tmp_path, "two_drones_empty.yaml", edit), seed=0)
+    try:
+        env.reset(seed=0)
+        for _ in range(3):  # head-on, closing 2 m per step
+            _, rewards, *_ = env.step({"drone0": 3, "drone1": 3})
+    finally:
+        env.close()
+    # drone0 starts further south: it yields and pays the full term; drone1 has right of way
+    assert rewards["drone0"] == pytest.approx(-10 * (1 - 4.0 / 9.5), abs=1.5)
+    assert rewards["drone1"] == 0.0
+
+
 @pytest.mark.parametrize("rule", ["lower_coordinate_yields", "first_to_arrive"])
 def test_priority_follows_the_rule_not_the_drone_id_when_spawns_swap(tmp_path: Path, rule: str) -> None:
     def edit(swap: bool, shift_goal: bool):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,7 +18,12 @@ import pytest
 import torch
 from test_rl_helpers import CorridorEnv, corridor_factory, tiny_config, train_corridor
 
-from sitl_bridge.rl.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
+from sitl_bridge.rl.checkpoint import (
+    CheckpointError,
+    list_checkpoints,
+    load_checkpoint,
+    save_checkpoint,
+)
 from sitl_bridge.rl.run_dir import RunSpec
 from sitl_bridge.rl.trainer import ShapeMismatch, Trainer, read_run_records
 
@@ -156,3 +162,34 @@ def test_init_from_transfers_weights_and_rejects_wrong_shapes(tmp_path: Path) ->
         assert torch.equal(trainer.agent.online.net[0].weight, source_weights["online.net.0.weight"])
         assert trainer.config.layers == 2
         assert trainer.epsilon() == 0.5
+
+
+def test_transfer_replay_starts_from_the_source_runs_transitions_and_keeps_them(tmp_path: Path) -> None:
+    source = Path(train_corridor(str(tmp_path / "a"), None, 4, 0.0))
+    source_shards = {p.name: p.read_bytes() for p in (source / "replay").glob("seg_*.bin")}
+    spec = RunSpec(world="corridor.yaml", seed=1, init_from=str(source))
+    with Trainer.start(tmp_path / "b", spec, tiny_config(transfer_replay=True, replay_capacity=1000),
+                       corridor_factory(), progress=False) as trainer:
+        adopted = len(trainer.replay)
+        # every row the source wrote (its shards in order; its own buffer held only the last 40)
+        expected = np.frombuffer(b"".join(source_shards[k] for k in sorted(source_shards)),
+                                 dtype=trainer.replay.rows.dtype)
+        assert adopted == len(expected) > 40
+        assert np.array_equal(trainer.replay.rows[:adopted], expected)
+        trainer.train()
+        run_dir, total = trainer.run_dir, len(trainer.replay)
+    assert total > adopted  # the new episodes joined the adopted rows
+    # the source run is read, never changed
+    assert {p.name: p.read_bytes() for p in (source / "replay").glob("seg_*.bin")} == source_shards
+    with Trainer.resume(run_dir, corridor_factory(), progress=False) as resumed:  # own shards hold them
+        assert len(resumed.replay) == total
+        assert np.array_equal(resumed.replay.rows[:adopted], expected)
+
+
+def test_transfer_replay_from_a_run_without_replay_fails_clearly(tmp_path: Path) -> None:
+    source = Path(train_corridor(str(tmp_path / "a"), None, 2, 0.0))
+    shutil.rmtree(source / "replay")  # as in committed results
+    spec = RunSpec(world="corridor.yaml", init_from=str(source))
+    with pytest.raises(CheckpointError, match="transfer-replay.*no replay"):
+        Trainer.start(tmp_path / "b", spec, tiny_config(transfer_replay=True), corridor_factory(), progress=False)
+    assert not (tmp_path / "b").exists() or not any((tmp_path / "b").iterdir())

@@ -13,7 +13,7 @@ scale and options (`closer_to_goal: {scale: 10, mode: binary}`). The step reward
 | `near_obstacle` | 1 when the lidar's near flag is set (and the drone did not crash) |
 | `crash` | 1 on a crash (collision, or the lidar crash flag when enabled) |
 | `out_of_workspace` | 1 when the drone left the workspace |
-| `separation` | `max(0, 1 - d / distance_m)` for the nearest other drone at distance d (0 beyond `distance_m`, default 3 m, 1 when touching): give it a negative scale to keep drones apart |
+| `separation` | `max(0, 1 - d / distance_m)` for the nearest other drone at distance d (0 beyond `distance_m`, default 3 m, 1 when touching): give it a negative scale to keep drones apart; with `give_way: true` times `1 - own priority`, so only the drone without right of way pays (it is the one responsible for keeping clear, as the give-way aircraft is in the rules of the air) |
 
 Thesis ratios (chapter 5.3): closer +10..+20, goal +500..+1000, per step -5..-10, near -10..-50,
 crash -100..-500. Keep penalties on the scale of the other terms (a -1e12 crash made NaN weights).
@@ -75,14 +75,16 @@ def out_of_workspace(view: DroneView) -> float:
     return 1.0 if view.out_of_workspace else 0.0
 
 
-def separation(distance_m: float) -> Callable[[DroneView], float]:
-    """Closeness of the nearest other drone: 1 - d / distance_m inside distance_m, else 0."""
+def separation(distance_m: float, give_way: bool = False) -> Callable[[DroneView], float]:
+    """Closeness of the nearest other drone: 1 - d / distance_m inside distance_m, else 0; with
+    `give_way`, times 1 - own priority (the drone with right of way pays nothing)."""
     def term(view: DroneView) -> float:
         others = view.others_position_enu_m.reshape(-1, 3)
         if others.shape[0] == 0:
             return 0.0
         nearest = float(np.min(np.linalg.norm(others - view.position_enu_m, axis=1)))
-        return max(0.0, 1.0 - nearest / distance_m)
+        closeness = max(0.0, 1.0 - nearest / distance_m)
+        return closeness * (1.0 - view.priority) if give_way else closeness
     return term
 
 
@@ -114,9 +116,10 @@ def _parse_term(name: str, node: Node) -> RewardTerm:
     if name == "separation":
         if not isinstance(node.value, dict):
             return RewardTerm(name, _scale(node), separation(3.0))
-        node.reject_unknown({"scale", "distance_m"})
+        node.reject_unknown({"scale", "distance_m", "give_way"})
         return RewardTerm(name, _scale(node.get("scale")),
-                          separation(node.get("distance_m", 3.0).number(positive=True, maximum=100.0)))
+                          separation(node.get("distance_m", 3.0).number(positive=True, maximum=100.0),
+                                     node.get("give_way", False).boolean()))
     if isinstance(node.value, dict):
         node.reject_unknown({"scale"})
         node = node.get("scale")

@@ -58,6 +58,10 @@ class TrainConfig:
     """lambda of the exponential epsilon schedule, per environment step (thesis: 3e-5..6e-5)."""
     transfer_epsilon_max: float = 0.6
     """epsilon_max used instead when the run starts from another run's network (thesis: 0.45-0.8)."""
+    transfer_replay: bool = False
+    """Starting from another run's network, also start with that run's replay (its transitions
+    as of its newest checkpoint): for fine-tuning in the same scenario on another backend, where
+    the first updates would otherwise fit a few new episodes and undo what was learned."""
     learning_rate: float = 1e-3
     """Learning rate (at the start when learning_rate_end is set)."""
     learning_rate_end: float = 0.0

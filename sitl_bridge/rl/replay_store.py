@@ -66,6 +66,15 @@ class ReplayStore:
         else:
             atomic_write_json(format_path, layout)
 
+    @classmethod
+    def open_existing(cls, directory: str | Path) -> ReplayStore:
+        """Another run's replay, to read (its layout from its `format.json`)."""
+        path = Path(directory) / "format.json"
+        if not path.is_file():
+            raise ReplayCorrupt(f"{directory}: no replay there ({path.name} is missing)")
+        layout = json.loads(path.read_text())
+        return cls(directory, int(layout["obs_dim"]), int(layout["segment_rows"]))
+
     def _path(self, segment: int) -> Path:
         return self.directory / f"seg_{segment:06d}.bin"
 
@@ -90,9 +99,9 @@ class ReplayStore:
             self.state.total_rows += take
             offset += take
 
-    def restore(self, state: ReplayStoreState, capacity: int) -> np.ndarray:
-        """Check the shards against a checkpoint's `state`, cut off rows written after it, and
-        return its last min(total_rows, capacity) rows. Raises ReplayCorrupt on damage."""
+    def read(self, state: ReplayStoreState, capacity: int) -> np.ndarray:
+        """The last min(total_rows, capacity) rows a checkpoint's `state` names, checked against
+        its checksums; changes nothing on disk. Raises ReplayCorrupt on damage."""
         base = state.base_row
         first_needed_row = max(base, state.total_rows - capacity)
         first_segment = (first_needed_row - base) // self.segment_rows
@@ -106,6 +115,16 @@ class ReplayStore:
             if expected is None or zlib.crc32(data) != expected:
                 raise ReplayCorrupt(f"replay shard {self._path(segment)} does not match its checksum")
             chunks.append(np.frombuffer(data, dtype=self.dtype))
+        rows = np.concatenate(chunks) if chunks else np.zeros(0, dtype=self.dtype)
+        skip = first_needed_row - base - first_segment * self.segment_rows
+        return rows[skip:].copy()
+
+    def restore(self, state: ReplayStoreState, capacity: int) -> np.ndarray:
+        """Check the shards against a checkpoint's `state`, cut off rows written after it, and
+        return its last min(total_rows, capacity) rows. Raises ReplayCorrupt on damage."""
+        rows = self.read(state, capacity)
+        stored = state.total_rows - state.base_row
+        last_segment = (stored - 1) // self.segment_rows if stored else -1
         # Verified: now drop what came after the checkpoint.
         for segment in range(last_segment + 1, last_segment + 1_000_000):
             path = self._path(segment)
@@ -118,10 +137,8 @@ class ReplayStore:
                 handle.truncate(size)
                 os.fsync(handle.fileno())
         fsync_dir(self.directory)
-        self.state = ReplayStoreState(state.total_rows, dict(state.crc), base)
-        rows = np.concatenate(chunks) if chunks else np.zeros(0, dtype=self.dtype)
-        skip = first_needed_row - base - first_segment * self.segment_rows
-        return rows[skip:].copy()
+        self.state = ReplayStoreState(state.total_rows, dict(state.crc), state.base_row)
+        return rows
 
     def discard(self, state: ReplayStoreState) -> np.ndarray:
         """Give up the shards on disk (after damage): delete them and continue at the row count

@@ -155,7 +155,7 @@ class Trainer:
         if init is not None:
             try:
                 trainer._load_init(*init)
-            except ShapeMismatch:
+            except (ShapeMismatch, ckpt.CheckpointError):
                 trainer.close()
                 shutil.rmtree(run_dir)  # just created, holds nothing yet
                 raise
@@ -211,6 +211,27 @@ class Trainer:
         self.agent.online.load_state_dict(_prefixed(tensors, "online."))
         self.agent.align_target()
         self.epsilon_max = self.config.transfer_epsilon_max
+        if self.config.transfer_replay:
+            self._adopt_replay(path)
+
+    def _adopt_replay(self, init_path: Path) -> None:
+        """Start the replay with the transitions of the run `init_path` belongs to (written to
+        this run's own shards, so checkpoints and resumes cover them like any other rows)."""
+        source = next((d for d in (init_path, *init_path.parents) if (d / rd.RUN_FILE).is_file()), None)
+        if source is None:
+            raise ckpt.CheckpointError(f"--transfer-replay: {init_path} is not inside a run directory")
+        try:
+            store = ReplayStore.open_existing(source / rd.REPLAY)
+            if store.dtype != self.store.dtype:
+                raise ShapeMismatch(f"--transfer-replay: {source}'s replay rows do not fit this run's")
+            _, _, state = ckpt.resolve_checkpoint(source, latest=True)
+            rows = store.read(ReplayStoreState.from_json(state["replay"]), self.config.replay_capacity)
+        except ReplayCorrupt as exc:
+            raise ckpt.CheckpointError(f"--transfer-replay: {exc} (committed results keep no replay: "
+                                       "train the source run here, or leave --transfer-replay off)") from None
+        self.replay.add_rows(rows)
+        self.store.append(rows)
+        log.info("started the replay with %d transitions of %s", len(rows), source)
 
     # -- checkpoint contents (the explicit save list) --------------------------------------
     def _state_tensors(self) -> dict[str, torch.Tensor]:
