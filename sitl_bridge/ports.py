@@ -103,19 +103,9 @@ def instance_free(instance: int, host: str = "127.0.0.1") -> bool:
 MAX_INSTANCE = 253
 """Highest vehicle instance: MAVLink system id 1 + i must fit in a byte."""
 
-
-def free_instance_block(count: int, start: int = 0) -> int:
-    """First instance i >= `start` whose instances i..i+count-1 are all free now (checked, not
-    claimed: a run starting at the same moment may take them)."""
-    for first in range(start, MAX_INSTANCE - count + 2):
-        if all(instance_free(first + k) for k in range(count)):
-            return first
-    raise RuntimeError(f"no {count} consecutive free vehicle instances from {start} to {MAX_INSTANCE}")
-
-
 __all__ = [
     "API_BIND_BASE_PORT", "API_CLIENT_BASE_PORT", "GCS_BIND_BASE_PORT", "GCS_REMOTE_PORT",
     "HIL_BASE_PORT", "MAX_INSTANCE", "PX4_LAST_OWN_API_INSTANCE", "PX4_SHARED_API_PORT", "VehiclePorts",
-    "api_bind_port", "api_client_port", "free_instance_block", "gcs_bind_port", "hil_port", "instance_free",
+    "api_bind_port", "api_client_port", "gcs_bind_port", "hil_port", "instance_free",
     "instance_sockets", "vehicle_ports",
 ]

@@ -31,6 +31,7 @@ from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 
+from sitl_bridge.autopilot.allocation import InstanceClaim, hold_instances
 from sitl_bridge.autopilot.fleet import AutopilotFault, AutopilotFleet, FleetConfig, SessionError
 from sitl_bridge.autopilot.registry import session_kind
 from sitl_bridge.errors import ConfigError
@@ -58,7 +59,8 @@ class SimSession:
         autopilot: a session kind of `sitl_bridge.autopilot.registry` (`stub`, `stub-process`,
             `px4`, `external`, or one registered at run time).
         speed_factor: F x real time while running; 0 = as fast as possible.
-        instance_base: vehicle k uses instance `instance_base + k` (ports: `sitl_bridge.ports`).
+        instance_base: vehicle k uses instance `instance_base + k` (ports: `sitl_bridge.ports`),
+            claimed until `close()`; or a held `InstanceClaim` to adopt (`autopilot.allocation`).
         seed: seeds the simulation (layout, movers) and the sensor noise.
         px4_bin / px4_rootfs: PX4 SITL binary and ROMFS (`px4` only; PX4_BIN by default).
         gui: pybullet GUI. visual: coloured bodies for offscreen pictures (`physics.render`).
@@ -77,7 +79,7 @@ class SimSession:
         *,
         autopilot: str = "stub",
         speed_factor: float = 1.0,
-        instance_base: int = 0,
+        instance_base: int | InstanceClaim = 0,
         seed: int = 0,
         px4_bin: str | os.PathLike[str] | None = None,
         px4_rootfs: str | os.PathLike[str] | None = None,
@@ -103,8 +105,9 @@ class SimSession:
             raise ConfigError(f"{self.world.source}: world.vehicles: expected at least 1 vehicle, got none")
         self.autopilot = autopilot
         self.speed_factor = float(speed_factor)
-        self.instance_base = instance_base
-        self.instances = [instance_base + k for k in range(self.world.num_vehicles)]
+        self._claim = instance_base if isinstance(instance_base, InstanceClaim) else None  # the caller's
+        self.instance_base = instance_base if self._claim is None else self._claim.base
+        self.instances = [self.instance_base + k for k in range(self.world.num_vehicles)]
         self.seed = seed
         self.gui, self.visual = gui, visual
         self.host = host
@@ -148,6 +151,7 @@ class SimSession:
         if self.gui and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
             # pybullet would exit(1) from C without a word of ours
             raise SessionError("--gui needs a display, and DISPLAY is not set")
+        self._closers.append(hold_instances(self.instances, self._claim))  # the first in: freed last
         self.sim = Simulation(world, seed=self.seed, step_us=None, gui=self.gui, visual=self.visual)
         self._closers.append(self.sim.close)
         step_us = self.sim.step_us
@@ -298,7 +302,6 @@ class SimSession:
         """
         runner = self._require_runner()
         sensor_seeds = None if seed is None else [sensor_seed(seed, k) for k in range(self.num_vehicles)]
-
         with runner.exclusive() as lockstep:
             def reset_simulation() -> None:
                 lockstep.reset_simulation(seed, sensor_seeds)
@@ -312,16 +315,13 @@ class SimSession:
         """Every collision the physics reported since the last call (or since `start()` /
         `reset()`), oldest first, each step's exactly once (at most COLLISION_LOG_LENGTH).
         Call it while held, e.g. before and after a `run_for`."""
-        log_ = self._collision_log
-        taken = list(log_)
-        log_.clear()
+        taken = list(self._collision_log)
+        self._collision_log.clear()
         return taken
 
     def _log_collisions(self) -> None:
         # Lockstep.after_step observer, in the stepping thread
-        found = self.sim.collisions() if self.sim is not None else ()
-        if found:
-            self._collision_log.extend(found)
+        self._collision_log.extend(self.sim.collisions() if self.sim is not None else ())
 
     def deliver_pending_commands(self, until: Callable[[], bool],
                                  timeout_s: float = DELIVERY_TIMEOUT_S) -> None:

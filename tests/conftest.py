@@ -57,18 +57,23 @@ def px4_bin() -> str:
 
 
 @pytest.fixture
-def px4_instance():
-    """A PX4 instance in 1..9 (own API port), claimed the way PX4 fleets claim theirs
-    (`autopilot.px4.allocation` lock files) for the whole test: a parallel run, or a test in
-    another checkout on this machine, never starts a PX4 or a MAVLink client on it meanwhile."""
-    from sitl_bridge.autopilot.px4.allocation import claim_free_instances
-    from sitl_bridge.autopilot.px4.process import Px4Error
+def px4_claim():
+    """A held claim (`autopilot.allocation`) of one PX4 instance in 1..9 (own API port; 0 only
+    when those are busy) for the whole test: a parallel run, or a test in another checkout on
+    this machine, never starts a PX4 or a MAVLink client on it meanwhile. Pass it as a
+    session's `instance_base` (the session adopts it)."""
+    from sitl_bridge.autopilot.allocation import InstancesBusy, claim_free_instances
+    from sitl_bridge.ports import PX4_LAST_OWN_API_INSTANCE
 
     try:
-        claim = claim_free_instances(1, first=1)
-    except Px4Error as exc:
+        claim = claim_free_instances(1, first=1, last=PX4_LAST_OWN_API_INSTANCE)
+    except InstancesBusy as exc:
         pytest.skip(str(exc))
-    try:
-        yield claim.instances[0]
-    finally:
-        claim.release()
+    with claim:
+        yield claim
+
+
+@pytest.fixture
+def px4_instance(px4_claim) -> int:
+    """The instance of `px4_claim`, for tests that drive a `Px4Fleet` themselves."""
+    return px4_claim.base

@@ -194,19 +194,14 @@ def fake_px4(tmp_path: Path) -> Path:
     return binary
 
 
-def test_px4_status_line_shows_the_mode_and_armed_flag_px4_reports(fake_px4: Path, tmp_path: Path) -> None:
+def test_px4_status_line_shows_the_mode_and_armed_flag_px4_reports(fake_px4: Path, px4_claim, tmp_path: Path) -> None:
     """The bug: with --autopilot px4 the status line said `Hold disarmed` for a whole flight.
     The px4 kind reads PX4's HEARTBEAT on its GCS link when asked; here a MAVLink peer that
     speaks PX4's protocol (the stub behind a stand-in bin/px4) flies offboard."""
-    from conftest import instance_ports_free
-
-    from sitl_bridge.autopilot.px4 import px4_server_running
     from sitl_bridge.client import OffboardClient
 
-    instance = next((i for i in range(9, -1, -1) if instance_ports_free(i) and not px4_server_running(i)), None)
-    if instance is None:
-        pytest.skip("no free PX4 instance in 0..9")
-    with SimSession("empty", autopilot="px4", px4_bin=fake_px4, speed_factor=0, instance_base=instance,
+    instance = px4_claim.base
+    with SimSession("empty", autopilot="px4", px4_bin=fake_px4, speed_factor=0, instance_base=px4_claim,
                     run_dir=tmp_path / "run") as session:
         assert session.vehicle_summary(0) == ("Hold", False)
         with OffboardClient(instance, clock=session, url=session.api_urls[0]) as client:

@@ -13,15 +13,25 @@ import threading
 import time
 from pathlib import Path
 
+from sitl_bridge.autopilot.allocation import claim_free_instances
 from sitl_bridge.autopilot.px4.temp_dirs import (
     OWNER_FILE,
     PREFIX,
     make_temp_run_dir,
     remove_stale_run_dirs,
 )
+from sitl_bridge.ports import PX4_LAST_OWN_API_INSTANCE
 
 FREEZE_S = 6.0
 """Longer than the lockstep's 5 s actuator timeout: the stopped autopilot is declared frozen."""
+
+
+def _free_px4_instance() -> int:
+    """A PX4 instance in 0..9 free now, for a child `sitl-bridge run --instance-base N`, which
+    claims exactly it (a lock cannot be handed on; a run that took it meanwhile makes the
+    child fail with InstancesBusy, never share it)."""
+    with claim_free_instances(1, last=PX4_LAST_OWN_API_INSTANCE) as claim:
+        return claim.base
 
 
 def _children(pid: int) -> list[int]:
@@ -129,9 +139,7 @@ def test_without_the_flag_a_killed_stub_process_ends_run(free_instance: int) -> 
 
 
 def test_run_restarts_a_killed_and_a_frozen_px4(px4_bin: str) -> None:
-    from sitl_bridge.autopilot.px4.allocation import free_px4_instances
-
-    _kill_and_freeze(["--autopilot", "px4", "--px4-bin", px4_bin], "bin/px4", free_px4_instances(1)[0], boot_s=120)
+    _kill_and_freeze(["--autopilot", "px4", "--px4-bin", px4_bin], "bin/px4", _free_px4_instance(), boot_s=120)
 
 
 def test_a_killed_owners_temp_run_dir_is_removed_by_the_next(tmp_path: Path, monkeypatch) -> None:
@@ -157,9 +165,7 @@ def test_a_killed_owners_temp_run_dir_is_removed_by_the_next(tmp_path: Path, mon
 def test_sigkill_of_run_with_px4_leaves_no_temp_dir_after_the_next_start(px4_bin: str) -> None:
     import tempfile
 
-    from sitl_bridge.autopilot.px4.allocation import free_px4_instances
-
-    instance = free_px4_instances(1)[0]
+    instance = _free_px4_instance()
     run = subprocess.Popen(
         [sys.executable, "-m", "sitl_bridge", "run", "--autopilot", "px4", "--px4-bin", px4_bin,
          "--instance-base", str(instance)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -114,7 +114,7 @@ def test_px4_flies_on_into_the_next_episode_with_nothing_leaking(px4_bin):
     from sitl_bridge.envs.options import EnvOptions
 
     world = load_world(WORLDS / "empty.yaml")
-    # the fleet claims its instance (0, or the first free one: `autopilot.px4.allocation`)
+    # the env claims its instance (0, or the first free one in 0..9: `autopilot.allocation`)
     options = EnvOptions.of(autopilot="px4", px4_bin=px4_bin, speed_factor=0.0)
     backend = SessionBackend(world, options, start_altitude_m=2.5)
     try:

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 import torch
 from test_rl_cli import (
-    REPO,
     TINY,
     TWO_DRONES,
     cli,
@@ -152,12 +151,3 @@ def test_multi_drone_scenarios_with_several_copies_are_one_line_errors(
     err = capsys.readouterr().err
     assert "single-drone" in err and "num_envs" in err and err.count("\n") == 1
     assert not list(tmp_path.iterdir())  # no run directory left behind
-
-
-def test_sweep_runs_with_copies_get_a_block_of_instances_each(tmp_path: Path) -> None:
-    from sitl_bridge.rl.sweep import plan
-
-    world = str(REPO / "worlds" / "empty.yaml")
-    jobs = plan(world, [0, 1], [("base", {}), ("n3", {"num_envs": 3})], tmp_path, autopilot="stub")
-    assert {job.vehicles for job in jobs} == {3}  # instance_base + slot * 3: copies never share a port
-    assert {job.vehicles for job in plan(world, [0], [("base", {})], tmp_path)} == {1}

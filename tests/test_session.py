@@ -308,17 +308,11 @@ def test_stub_process_sessions_reset_by_restarting_the_stubs() -> None:
 
 
 @pytest.mark.px4
-def test_px4_sessions_reset_by_restarting_px4(px4_bin: str, tmp_path) -> None:
-    from conftest import instance_ports_free
-
-    from sitl_bridge.autopilot.px4 import px4_server_running
+def test_px4_sessions_reset_by_restarting_px4(px4_bin: str, px4_claim, tmp_path) -> None:
     from sitl_bridge.client import OffboardClient
 
-    instance = next((i for i in range(9, -1, -1)
-                     if instance_ports_free(i) and not px4_server_running(i)), None)
-    if instance is None:
-        pytest.skip("no free PX4 instance in 0..9")
-    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=0, instance_base=instance,
+    instance = px4_claim.base
+    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=0, instance_base=px4_claim,
                     run_dir=tmp_path) as session:
         session.run_for(1.0)
         link, px4 = session.links[0], session.autopilots.px4.autopilots[0]

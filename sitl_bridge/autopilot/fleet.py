@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from sitl_bridge.hil.errors import LinkClosed, LockstepTimeout
-from sitl_bridge.ports import VehiclePorts, vehicle_ports
+from sitl_bridge.ports import MAX_INSTANCE, VehiclePorts, vehicle_ports
 
 if TYPE_CHECKING:
     from sitl_bridge.hil import HilLink, Lockstep
@@ -114,16 +114,13 @@ class AutopilotFleet(ABC):
     resets_in_air: ClassVar[bool] = False
     """The next episode may start in the air with the autopilots flying on, not rebooted
     (`autopilot.in_air_reset.reset_in_air`, asking `in_air_refusal` before and after)."""
+    last_instance: ClassVar[int] = MAX_INSTANCE
+    """The highest vehicle instance an env of this kind claims (`autopilot.allocation`; px4:
+    9, the last with an API port of its own)."""
 
     def __init__(self, config: FleetConfig) -> None:
         self.config = config
         self.instances = tuple(config.instances)
-
-    @classmethod
-    def pick_instance_base(cls, count: int, preferred: int) -> int:
-        """First instance for `count` vehicles of an env that does not care which: `preferred`,
-        or (kinds with few instances, e.g. px4) the first block free of other runs."""
-        return preferred
 
     # -- lifecycle ----------------------------------------------------------------------------
     @abstractmethod

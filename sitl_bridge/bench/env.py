@@ -26,9 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl_bridge.autopilot import registry
+from sitl_bridge.bench.stub import BENCH_INSTANCE_BASE
 from sitl_bridge.envs import make_env, worlds_dir
-from sitl_bridge.ports import instance_free
 
 SCENARIO = "obstacle.yaml"
 CONFIGS = (("direct", "sensors"), ("direct", "ground_truth"), ("stub", "sensors"))
@@ -75,20 +74,11 @@ class EnvFigures:
                 f"({len(self.resets)} resets, {self.steps} steps)")
 
 
-def _free_instance() -> int:
-    """A vehicle instance whose HIL TCP port (4560+i) and API ports are free (MAVLink system
-    id 1+i must fit in a byte)."""
-    for instance in range(150, 250, 3):
-        if instance_free(instance):
-            return instance
-    raise RuntimeError("no free vehicle instance for the stub backend")
-
-
 def measure(backend: str, scenario: Path, seconds: float, seed: int = 0,
             estimator: str = "sensors") -> EnvFigures:
     """Fly `seconds` of simulated time of random actions on `backend` with `estimator`."""
-    instance = _free_instance() if registry.get(backend).has_session else 0  # sockets only with a session
-    env = make_env(scenario, autopilot=backend, speed_factor=0.0, seed=seed, instance_base=instance,
+    # session backends claim a free instance from here up (px4: in 0..9)
+    env = make_env(scenario, autopilot=backend, speed_factor=0.0, seed=seed, instance_base=BENCH_INSTANCE_BASE,
                    estimator=estimator)
     rng = np.random.default_rng(seed)
     step_s = env.scenario.task.action.step_s

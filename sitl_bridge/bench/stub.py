@@ -11,15 +11,12 @@ from __future__ import annotations
 import argparse
 import time
 
+from sitl_bridge.autopilot.allocation import claim_free_instances
 from sitl_bridge.client.fleet import Fleet
-from sitl_bridge.ports import free_instance_block
 from sitl_bridge.session import SimSession, default_world_path
 
-
-def free_instance_base(count: int, start: int = 200) -> int:
-    """First instance i >= start with instances i..i+count-1 all free (benches stay off the
-    low instances users run; MAVLink system ids 1 + i must stay below 256)."""
-    return free_instance_block(count, start)
+BENCH_INSTANCE_BASE = 200
+"""Benchmarks claim vehicle instances from here up: off the low ones users run."""
 
 
 def measure(vehicles: int, seconds: float) -> dict[str, tuple[float, float, float]]:
@@ -30,10 +27,10 @@ def measure(vehicles: int, seconds: float) -> dict[str, tuple[float, float, floa
     same loop, run on the calling thread for the measurement): what one dedicated core gives,
     the fair figure on a loaded machine. `rtf_process_cpu`: per CPU second of the whole
     process, MAVSDK's threads included."""
-    base = free_instance_base(vehicles)
     result: dict[str, tuple[float, float, float]] = {}
-    with SimSession(default_world_path(), autopilot="stub", speed_factor=0, instance_base=base,
-                    num_vehicles=vehicles) as session, \
+    with claim_free_instances(vehicles, BENCH_INSTANCE_BASE) as claim, \
+            SimSession(default_world_path(), autopilot="stub", speed_factor=0, instance_base=claim,
+                       num_vehicles=vehicles) as session, \
             Fleet.for_session(session) as fleet:
         fleet.wait_healthy()
         result["ground"] = _timed_run(session, seconds)

@@ -19,8 +19,8 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
 * `parallel`: `direct` envs in 1 and 2 worker processes, aggregate real-time factor and the
   speed-up from 1 to 2 workers (about 2 on two idle cores).
-* `px4_parallel`: the same with `px4` envs, each worker its own PX4 instance (claimed in 0..9
-  through `autopilot.px4.allocation`, never shared; `instances` says which), in env steps per
+* `px4_parallel`: the same with `px4` envs, each worker its own PX4 instance (each worker's env
+  claims one in 0..9 through `autopilot.allocation`, never shared; `instances` says which), in env steps per
   wall second (`steps_per_s`): one PX4-backed env process against two at once, `reps` timed
   windows after one PX4 start per worker. Needs `PX4_BIN`, else `{"skipped": reason}`.
 """
@@ -117,11 +117,11 @@ def _random_stepper(env: Any) -> Callable[[], float]:
 def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
               px4_bin: str | None = None) -> tuple[dict[str, Any], list[float]]:
     """(figures, reset wall seconds) for one single env on `backend`."""
-    from sitl_bridge.bench.stub import free_instance_base
+    from sitl_bridge.bench.stub import BENCH_INSTANCE_BASE
     from sitl_bridge.envs import make_env
 
-    instance = free_instance_base(1) if backend != "direct" else 0
-    env = make_env(_scenario(), autopilot=backend, speed_factor=0.0, seed=0, instance_base=instance,
+    # session backends claim a free instance from here up (px4: in 0..9)
+    env = make_env(_scenario(), autopilot=backend, speed_factor=0.0, seed=0, instance_base=BENCH_INSTANCE_BASE,
                    estimator=estimator, px4_bin=px4_bin)
     step = _random_stepper(env)
     try:
@@ -190,7 +190,7 @@ def _train_case(size: Size, bare: float) -> dict[str, Any]:
     return entry
 
 
-def _parallel_worker(autopilot: str, px4_bin: str | None, instance_base: int, windows: int, sim_s: float,
+def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, sim_s: float,
                      warmup_s: float, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
     """Fly one env in this worker process: warm up, then `windows` timed windows of `sim_s`
     simulated seconds, each started together with the other workers' (`barrier`). Puts
@@ -200,8 +200,8 @@ def _parallel_worker(autopilot: str, px4_bin: str | None, instance_base: int, wi
 
     env = None
     try:
-        env = make_env(_scenario(), autopilot=autopilot, speed_factor=0.0, seed=os.getpid(),
-                       instance_base=instance_base, px4_bin=px4_bin)
+        # session backends claim their own instances (autopilot.allocation): nothing handed in
+        env = make_env(_scenario(), autopilot=autopilot, speed_factor=0.0, seed=os.getpid(), px4_bin=px4_bin)
         step = _random_stepper(env)
         env.reset()
         _fly(step, warmup_s)  # a PX4 boot and takeoff happen here, before any window
@@ -221,16 +221,15 @@ def _parallel_worker(autopilot: str, px4_bin: str | None, instance_base: int, wi
             env.close()
 
 
-def _parallel_rtf(bases: list[int], size: Size, sim_s: float, windows: int = 1, autopilot: str = "direct",
+def _parallel_rtf(workers: int, size: Size, sim_s: float, windows: int = 1, autopilot: str = "direct",
                   px4_bin: str | None = None) -> tuple[list[float], list[tuple[int, ...]]]:
-    """Aggregate real-time factor of one worker process per instance base in `bases`, each
-    flying an env, per timed window; and the instances each worker flew (session backends)."""
-    workers = len(bases)
+    """Aggregate real-time factor of `workers` worker processes, each flying an env, per timed
+    window; and the instances each worker flew (session backends)."""
     ctx = mp.get_context("spawn")  # a fresh interpreter: no pybullet state copied by fork
     barrier, results = ctx.Barrier(workers), ctx.Queue()
-    procs = [ctx.Process(target=_parallel_worker, args=(autopilot, px4_bin, base, windows, sim_s,
+    procs = [ctx.Process(target=_parallel_worker, args=(autopilot, px4_bin, windows, sim_s,
                                                         size.warmup_s, barrier, results))
-             for base in bases]
+             for _ in range(workers)]
     for proc in procs:
         proc.start()
     try:
@@ -254,8 +253,8 @@ def _parallel_rtf(bases: list[int], size: Size, sim_s: float, windows: int = 1, 
 
 def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
     reps = max(1, size.reps - 1)
-    one = [_parallel_rtf([0], size, size.parallel_sim_s)[0][0] for _ in range(reps)]
-    two = [_parallel_rtf([0, 0], size, size.parallel_sim_s)[0][0] for _ in range(reps)]
+    one = [_parallel_rtf(1, size, size.parallel_sim_s)[0][0] for _ in range(reps)]
+    two = [_parallel_rtf(2, size, size.parallel_sim_s)[0][0] for _ in range(reps)]
     return {"workers_1": _rtf_entry(one, bare), "workers_2": _rtf_entry(two, bare),
             "speedup_2_over_1": statistics.median(two) / statistics.median(one),
             "cpu_count": os.cpu_count()}
@@ -264,14 +263,12 @@ def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
 def _px4_parallel_case(size: Size, bare: float, px4_bin: str) -> dict[str, Any]:
     """Env steps/s of one px4 env process against two at once (aggregate), each worker with
     its own PX4; one PX4 start per worker count, `reps` timed windows after it."""
-    from sitl_bridge.autopilot.px4.allocation import free_px4_instances
-
     step_s = _step_s()
     entries = {}
     for workers in (1, 2):
-        # One PX4 instance each, free now; each worker's fleet claims its own when it starts
-        # (one whose instance was taken meanwhile moves on to the next free one).
-        rtfs, instances = _parallel_rtf(list(free_px4_instances(workers)), size, size.px4_parallel_sim_s, windows=size.reps,
+        # Nothing handed out: each worker's env claims its own free PX4 instance in 0..9 and
+        # holds it to the end (`autopilot.allocation`); the workers report which.
+        rtfs, instances = _parallel_rtf(workers, size, size.px4_parallel_sim_s, windows=size.reps,
                                         autopilot="px4", px4_bin=px4_bin)
         steps = [rtf / step_s for rtf in rtfs]
         entries[f"workers_{workers}"] = _rtf_entry(rtfs, bare, steps_per_s=_spread(steps),

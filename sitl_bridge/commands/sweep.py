@@ -30,7 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--address", help="Ray cluster address (default: start Ray's local cluster)")
     parser.add_argument("--autopilot", choices=("direct", "stub", "px4"), default="direct")
     parser.add_argument("--instance-base", type=int, default=0,
-                        help="first vehicle instance of the sweep (stub/px4 ports 4560+i, ...)")
+                        help="preferred first vehicle instance (stub/px4 ports 4560+i, ...); each run "
+                             "claims a free block from it up")
     parser.add_argument("--out", help="sweep root (default runs/sweep__<world>)")
     parser.add_argument("--watchdog", action="store_true",
                         help="supervise every run like `train --watchdog` (direct backend): a run that dies "

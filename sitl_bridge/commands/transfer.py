@@ -33,8 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--speed-factor", type=float, default=0.0,
                         help="speed factor of the session backends (default 0: as fast as lockstep allows)")
     parser.add_argument("--instance-base", type=int, default=None,
-                        help="first vehicle instance of the session backends (default: a free block; "
-                             "px4 a free one in 0..9)")
+                        help="preferred first vehicle instance of the session backends (each claims a free "
+                             "block from it up, px4 in 0..9; default 100)")
     parser.add_argument("--px4-bin", default=None, help="PX4 SITL binary (default: $PX4_BIN)")
     parser.add_argument("--json", default=None, metavar="FILE", help="also write the table as JSON")
     parser.set_defaults(func=main)

@@ -39,7 +39,8 @@ class EnvOptions:
     seed: int | None = None
     """Seeds the backend's first layout and the env's first `reset()` without a seed."""
     instance_base: int = 0
-    """First vehicle instance (ports: `sitl_bridge.ports`)."""
+    """Preferred first vehicle instance (ports: `sitl_bridge.ports`) of session backends: taken
+    when free, else the next free block; claimed for the env's life (`autopilot.allocation`)."""
     px4_bin: str | None = None
     """PX4 SITL binary (`px4`; PX4_BIN by default)."""
     gui: bool = False

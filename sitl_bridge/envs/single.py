@@ -99,7 +99,8 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     training), `stub` (full protocol path: HIL link, stub autopilot, MAVLink, MAVSDK) or `px4`
     (real PX4 SITL from `px4_bin` / `PX4_BIN`). `speed_factor`: simulated/wall time pacing for
     `stub`/`px4` (0 = as fast as possible). `seed`: seeds the first `reset()` without a seed.
-    `instance_base`: first vehicle instance (ports 4560+i, 14540+i, ...).
+    `instance_base`: preferred first vehicle instance (ports 4560+i, 14540+i, ...): taken when
+    free, else the next free block (claimed for the env's life, never shared with another run).
     `estimator`: `sensors` (default: the stub estimates its state from the simulated, noisy
     sensors, as PX4 does) or `ground_truth` (a labelled speed shortcut for `direct`/`stub`: the
     stub flies on the simulator's noise-free state, and `direct` skips the sensor simulation;

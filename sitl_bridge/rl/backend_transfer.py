@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from sitl_bridge.autopilot import registry
 from sitl_bridge.rl.stats import wilson_interval
 
 OUTCOMES = ("goal", "crash", "out", "timeout")
@@ -28,8 +27,8 @@ OUTCOMES = ("goal", "crash", "out", "timeout")
 DIFFERENCE_POINTS = 10.0
 """A backend's success or collision rate this many points from the reference's is explained."""
 FIRST_FREE_INSTANCE = 100
-"""Session backends' vehicle instances are searched from here: off the low instances users and
-PX4 (0..9) run on."""
+"""Session backends claim their vehicle instances from here up (px4: in 0..9): off the low
+instances users run on."""
 
 
 @dataclass
@@ -81,31 +80,19 @@ def outcome_counts(outcomes: Sequence[str]) -> dict[str, int]:
     return {**{o: counts.get(o, 0) for o in OUTCOMES}, **{o: n for o, n in sorted(counts.items()) if o not in OUTCOMES}}
 
 
-def free_instance_base(autopilot: str, world: str | Path) -> int:
-    """First vehicle instance for `autopilot` in `world`: 0 without a session (no sockets), else
-    the first block from `FIRST_FREE_INSTANCE` whose ports are free; a kind with few instances
-    (px4: 0..9) moves it to a free block of its own when the session starts
-    (`AutopilotFleet.pick_instance_base`)."""
-    if not registry.env_kind(autopilot).has_session:
-        return 0
-    from sitl_bridge.ports import free_instance_block
-    from sitl_bridge.world import load_world
-
-    return free_instance_block(load_world(world).num_vehicles, FIRST_FREE_INSTANCE)
-
-
 def fly_on_backend(policy: Callable[[np.ndarray], int], world: str | Path, autopilot: str, *, episodes: int,
                    seed: int, speed_factor: float = 0.0, instance_base: int | None = None,
                    px4_bin: str | None = None) -> BackendFlight:
     """Fly `policy` greedily for `episodes` episodes of `world` on `autopilot`, reset seeds
-    `eval_seeds(seed, episodes)`, in one env (`instance_base` None: `free_instance_base`).
+    `eval_seeds(seed, episodes)`, in one env (`instance_base`: its preferred first instance,
+    None: `FIRST_FREE_INSTANCE`).
     Raises RuntimeError (e.g. Px4Error) when the backend cannot start."""
     from sitl_bridge.rl.drones_env import scenario_env_factory
     from sitl_bridge.rl.evaluate import evaluate_policy
 
     world = str(world)
     extra: dict[str, Any] = {"px4_bin": px4_bin} if px4_bin else {}
-    base = free_instance_base(autopilot, world) if instance_base is None else instance_base
+    base = FIRST_FREE_INSTANCE if instance_base is None else instance_base
     factory = scenario_env_factory(world, autopilot, speed_factor=speed_factor, instance_base=base, **extra)
     _, traces = evaluate_policy(policy, factory, world=world, episodes=episodes, seed=seed)
     flight = BackendFlight(autopilot, episodes, seed)

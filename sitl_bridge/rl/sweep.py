@@ -12,10 +12,12 @@ same sweep skips runs with `done.json`, resumes the others from their newest che
 (`Trainer.resume`) and starts those never started. A run that fails is reported with its error;
 the others go on.
 
-Vehicle instances (ports 4560+i, ...; only `stub`/`px4` open any): each local worker process
-owns one slot for its whole life and its runs use instances `instance_base + slot * vehicles
-...`, so concurrent runs of one sweep never share a port. Ray tasks get a slot per run instead
-(`instance_base + run_index * vehicles`). Keep real PX4 at instances 0-9 (see the README).
+Vehicle instances (ports 4560+i, ...; only `stub`/`px4` open any): nothing is handed out. Each
+run's env claims its own when it starts, from `instance_base` up (`autopilot.allocation`: the
+pick is an exclusive lock held until the env closes), so concurrent runs never share one,
+whether of this sweep, another sweep or a run by hand. A parent that picked instances for its
+workers would have to release them before a worker could lock them, a gap another run could
+take; so the parent keeps nothing. px4 envs claim in 0..9 whatever `instance_base` says.
 """
 
 from __future__ import annotations
@@ -54,8 +56,7 @@ class SweepJob:
     job_dir: str
     """`<root>/<point>/seed<N>`: holds the run directory and `done.json`."""
     instance_base: int
-    vehicles: int
-    """Vehicle instances one run uses at once (the world's vehicles x the largest num_envs)."""
+    """The preferred first vehicle instance of the run's envs (they claim a free block from it up)."""
     progress: bool = False
     watchdog: bool = False
     """Train in a `sitl-bridge train` child supervised by `rl.watchdog` (restarted from its last
@@ -130,19 +131,16 @@ def load_grid(path: str | Path | None, world: str | Path) -> list[tuple[str, dic
 def plan(world: str | Path, seeds: Iterable[int], points: list[tuple[str, dict[str, Any]]], root: str | Path,
          *, autopilot: str = "direct", instance_base: int = 0, common: dict[str, Any] | None = None,
          watchdog: bool = False) -> list[SweepJob]:
-    """Every (grid point, seed) run of the sweep, in a stable order."""
-    from sitl_bridge.world import load_world
-
-    # A run with num_envs copies flies that many vehicles at once (make_vec_env: instance base + k).
-    copies = max((load_train_config(world, {**(common or {}), **overrides}).num_envs for _, overrides in points),
-                 default=1)
-    vehicles = load_world(world).num_vehicles * copies
+    """Every (grid point, seed) run of the sweep, in a stable order (each point's settings
+    checked first: a bad one is a ConfigError now, not a failed run later)."""
+    for _, overrides in points:
+        load_train_config(world, {**(common or {}), **overrides})
     jobs = []
     for point, overrides in points:
         for seed in seeds:
             job_dir = Path(root) / _safe(point) / f"seed{seed}"
             jobs.append(SweepJob(len(jobs), str(world), seed, point, {**(common or {}), **overrides}, autopilot,
-                                 str(job_dir), instance_base, vehicles, watchdog=watchdog))
+                                 str(job_dir), instance_base, watchdog=watchdog))
     return jobs
 
 
@@ -150,7 +148,7 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.=,+-]", "_", name)
 
 
-def run_job(job: SweepJob, instance: int) -> SweepResult:
+def run_job(job: SweepJob) -> SweepResult:
     """Train one run to its end (or resume it); never raises: a failure is a result."""
     job_dir = Path(job.job_dir)
     done = job_dir / DONE_FILE
@@ -161,7 +159,7 @@ def run_job(job: SweepJob, instance: int) -> SweepResult:
     start = time.perf_counter()
     result = SweepResult(job.point, job.seed, "failed")
     try:
-        result = _train(job, instance)
+        result = _train(job)
         result.wall_s = time.perf_counter() - start
         tmp = done.with_suffix(".tmp")
         tmp.write_text(json.dumps(asdict(result), indent=1) + "\n")
@@ -175,7 +173,7 @@ def run_job(job: SweepJob, instance: int) -> SweepResult:
     return result
 
 
-def _train(job: SweepJob, instance: int) -> SweepResult:
+def _train(job: SweepJob) -> SweepResult:
     if job.watchdog:
         return _train_supervised(job)
     from sitl_bridge.rl.drones_env import scenario_env_factory
@@ -184,7 +182,7 @@ def _train(job: SweepJob, instance: int) -> SweepResult:
 
     job_dir = Path(job.job_dir)
     job_dir.mkdir(parents=True, exist_ok=True)
-    factory = scenario_env_factory(job.world, job.autopilot, instance_base=instance)
+    factory = scenario_env_factory(job.world, job.autopilot, instance_base=job.instance_base)
     started = [d for d in sorted(job_dir.iterdir()) if (d / RUN_FILE).exists()]
     if started:  # an unfinished run of an earlier sweep: continue it
         trainer = Trainer.resume(started[-1], factory, episodes=job.overrides.get("episodes"),
@@ -240,33 +238,19 @@ def _train_supervised(job: SweepJob) -> SweepResult:
 
 
 # -- local processes ------------------------------------------------------------------------
-_slot: int | None = None
-
-
-def _init_worker(counter) -> None:
-    """Give this worker process its own instance slot for its whole life, and end it with the
-    sweep (a killed sweep must not leave runs training on with nobody to collect them)."""
-    global _slot
+def _init_worker() -> None:
+    """End this worker process with the sweep (a killed sweep must not leave runs training on
+    with nobody to collect them)."""
     die_with_parent()
-    with counter.get_lock():
-        _slot = counter.value
-        counter.value += 1
-
-
-def _run_in_worker(job: SweepJob) -> SweepResult:
-    assert _slot is not None
-    return run_job(job, job.instance_base + _slot * job.vehicles)
 
 
 def run_local(jobs: list[SweepJob], workers: int,
               on_result: Callable[[SweepResult], None] | None = None) -> list[SweepResult]:
     """Run `jobs` in `workers` fresh processes; results in job order."""
     ctx = mp.get_context("spawn")  # fresh interpreters: no pybullet/torch state inherited
-    counter = ctx.Value("i", 0)
     results: dict[int, SweepResult] = {}
-    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, initializer=_init_worker,
-                             initargs=(counter,)) as pool:
-        futures = {pool.submit(_run_in_worker, job): job for job in jobs}
+    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, initializer=_init_worker) as pool:
+        futures = {pool.submit(run_job, job): job for job in jobs}
         for future in as_completed(futures):
             job = futures[future]
             try:
@@ -283,7 +267,7 @@ def run_serial(jobs: list[SweepJob], on_result: Callable[[SweepResult], None] | 
     """Run `jobs` one after another in this process (one worker: no process to start)."""
     results = []
     for job in jobs:
-        results.append(run_job(job, job.instance_base))
+        results.append(run_job(job))
         if on_result is not None:
             on_result(results[-1])
     return results
@@ -304,7 +288,7 @@ def run_ray(jobs: list[SweepJob], address: str | None = None, num_cpus_per_run: 
         ray.init(address=address, include_dashboard=False, log_to_driver=False)
     try:
         task = ray.remote(num_cpus=num_cpus_per_run)(run_job)
-        refs = {task.remote(job, job.instance_base + job.index * job.vehicles): job for job in jobs}
+        refs = {task.remote(job): job for job in jobs}
         results: dict[int, SweepResult] = {}
         pending = list(refs)
         while pending:

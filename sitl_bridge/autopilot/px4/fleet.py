@@ -4,7 +4,6 @@ a session's `px4` autopilot kind."""
 
 from __future__ import annotations
 
-import contextlib
 import math
 import shutil
 import time
@@ -22,7 +21,6 @@ from sitl_bridge.autopilot.fleet import (
     VehicleSummary,
     link_summary,
 )
-from sitl_bridge.autopilot.px4.allocation import InstanceClaim, claim_instances, free_px4_instances
 from sitl_bridge.autopilot.px4.in_air import IN_AIR_LIMITS, InAirLimits
 from sitl_bridge.autopilot.px4.in_air import refusal as in_air_refusal
 from sitl_bridge.autopilot.px4.observer import Px4Observation
@@ -237,6 +235,7 @@ class Px4SitlFleet(AutopilotFleet):
 
     resets_in_place = False
     resets_in_air = True
+    last_instance = PX4_LAST_OWN_API_INSTANCE  # above 9 PX4 gives no API port of its own (ports.py)
 
     def __init__(self, config: FleetConfig) -> None:
         super().__init__(config)
@@ -248,21 +247,10 @@ class Px4SitlFleet(AutopilotFleet):
                 f"0..{PX4_LAST_OWN_API_INSTANCE}, got {self.instances[0]}..{self.instances[-1]}")
         self.px4: Px4Fleet | None = None
         self._temp_run_dir: Path | None = None
-        self._claim: InstanceClaim | None = None
-
-    @classmethod
-    def pick_instance_base(cls, count: int, preferred: int) -> int:
-        # real PX4 gives instances above 9 no API port of their own (ports.py): stay in 0..9
-        if preferred + count - 1 <= PX4_LAST_OWN_API_INSTANCE:
-            with contextlib.suppress(Px4Error):
-                claim_instances(range(preferred, preferred + count), ports_free=True).release()
-                return preferred
-        return free_px4_instances(count)[0]  # busy or out of range: the next free block
 
     def start(self, links: Sequence[Any]) -> list[Any]:
         config = self.config
-        # Parallel runs never share an instance (lock files; see `allocation`).
-        self._claim = claim_instances(self.instances)
+        # (the session holds the instances' claim: `autopilot.allocation`)
         run_dir = config.run_dir
         if run_dir is None:
             # Ours, so removed on close; pass run_dir to keep PX4's console logs.
@@ -306,9 +294,6 @@ class Px4SitlFleet(AutopilotFleet):
         if self._temp_run_dir is not None:
             shutil.rmtree(self._temp_run_dir, ignore_errors=True)
             self._temp_run_dir = None
-        if self._claim is not None:
-            self._claim.release()
-            self._claim = None
 
     def restart(self, lockstep: Any, reset_simulation: Callable[[], None] | None = None) -> None:
         try:

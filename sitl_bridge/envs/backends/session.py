@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from sitl_bridge.autopilot.allocation import InstanceClaim, claim_free_instances
 from sitl_bridge.autopilot.in_air_reset import reset_in_air
 from sitl_bridge.autopilot.registry import env_kind
 from sitl_bridge.client import Fleet, OffboardClientError
@@ -52,9 +53,6 @@ from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.session import SessionError, SimSession
 from sitl_bridge.world import World
 from sitl_bridge.world.clock import nearest_whole_steps_s
-
-START_ATTEMPTS = 3
-"""Starts on freshly picked instances when another run took the picked ones first."""
 
 
 class SessionBackend:
@@ -80,6 +78,8 @@ class SessionBackend:
             ground_truth_estimate=options.ground_truth)
         self.session: SimSession | None = None
         self.fleet: Fleet | None = None
+        self.claim: InstanceClaim | None = None
+        """The vehicle instances this env runs on, held from its first start to `close()`."""
         self.lidar: Lidar | None = None
         self._collided = [False] * self.num_drones
         self._episode_start_us = 0
@@ -128,6 +128,7 @@ class SessionBackend:
         if not self._closed:
             self._closed = True
             self._stop()
+            self._release()
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _session(self) -> SimSession:
@@ -141,27 +142,23 @@ class SessionBackend:
         return self.fleet
 
     def _start(self, seed: int) -> None:
-        fleet_class = env_kind(self.name).fleet_class()
-        preferred = self._session_options["instance_base"]
-        for attempt in range(START_ATTEMPTS):
-            # Parallel envs of a kind with few instances (px4: 0..9) take free ones, not a busy one.
-            base = fleet_class.pick_instance_base(self.num_drones, preferred)
-            session = SimSession(self.world, seed=seed, **{**self._session_options, "instance_base": base})
-            try:
-                session.start()
-                self.session = session
-                self.fleet = Fleet(session.instances, clock=session).connect()
-                break
-            except BaseException as exc:
-                self.session = session
-                self._stop()
-                # The pick is not a claim: a run starting at the same moment may have taken the
-                # same instances first (their ports or lock files). Then the next pick differs.
-                if (not isinstance(exc, Exception) or attempt + 1 == START_ATTEMPTS
-                        or fleet_class.pick_instance_base(self.num_drones, preferred) == base):
-                    raise
-        assert session.sim is not None
-        self.lidar = Lidar(session.sim, [v.lidar for v in self.world.vehicles])
+        if self.claim is None:
+            # The pick is the claim, held until close(): no run starting at the same moment can
+            # take these instances, and restarts (px4) come back on them. `instance_base` is a
+            # preference: taken when free, else the next free block the kind can run on.
+            fleet_class = env_kind(self.name).fleet_class()
+            self.claim = claim_free_instances(self.num_drones, self._session_options["instance_base"],
+                                              fleet_class.last_instance)
+        self.session = SimSession(self.world, seed=seed, **{**self._session_options, "instance_base": self.claim})
+        try:
+            self.session.start()
+            self.fleet = Fleet(self.session.instances, clock=self.session).connect()
+        except BaseException:
+            self._stop()
+            self._release()  # not running: the next reset picks again
+            raise
+        assert self.session.sim is not None
+        self.lidar = Lidar(self.session.sim, [v.lidar for v in self.world.vehicles])
 
     def _stop(self) -> None:
         if self.fleet is not None:
@@ -172,6 +169,11 @@ class SessionBackend:
             self.session.close()
             self.session = None
         self.lidar = None
+
+    def _release(self) -> None:
+        if self.claim is not None:
+            self.claim.release()
+            self.claim = None
 
     # -- episode start --------------------------------------------------------------------------
     def _hover_start(self) -> None:
