@@ -319,9 +319,9 @@ class SimSession:
 
     def _log_collisions(self) -> None:
         # Lockstep.after_step observer, in the stepping thread
-        found = self.sim.collisions() if self.sim is not None else ()
-        if found:
-            self._collision_log.extend(found)
+        sim = self.sim
+        if sim is not None and sim.has_collisions:  # no list copy on the (usual) steps without
+            self._collision_log.extend(sim.collisions())
 
     def deliver_pending_commands(self, until: Callable[[], bool],
                                  timeout_s: float = DELIVERY_TIMEOUT_S) -> None:
