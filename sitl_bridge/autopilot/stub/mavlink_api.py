@@ -14,7 +14,9 @@ Batched telemetry (`batch_wall_s` > 0, for an in-process stub pumped by the lock
 simulated time runs, the streams' messages queue up and go out in one datagram per link every
 `batch_wall_s` of wall time (or every `BATCH_MAX_MESSAGES`), not one datagram per step: each
 datagram wakes the client's receiving thread (MAVSDK), which on a busy machine costs the
-lockstep its CPU. A pump at unchanged simulated time (held: the lockstep's `hold()` and
+lockstep its CPU. The GCS link, a display for people (its streams are 1-20 Hz), batches over
+`GCS_BATCH_FACTOR` times as long: it carries a sixth of the messages, but with the same interval
+sent as many datagrams as the API link (often to a port nobody listens on). A pump at unchanged simulated time (held: the lockstep's `hold()` and
 `idle()`) sends everything queued, so a client reading while the simulation is held sees the
 same telemetry as without batching. Answers (acks, parameters) always go out at once.
 While batching and running, the sockets are also read at most every `POLL_WALL_S` of wall time
@@ -59,6 +61,7 @@ d = mavlink.dialect
 API_REMOTE_BASE_PORT = API_CLIENT_BASE_PORT  # the stub's name for it
 KEEPALIVE_WALL_S = 1.0
 BATCH_MAX_MESSAGES = 20  # per datagram: well under UDP size limits
+GCS_BATCH_FACTOR = 10  # the GCS link's batch interval, in API link intervals (20 ms wall in-process)
 POLL_WALL_S = 0.0005  # batched and running: read the sockets at most this often (wall)
 FORCE_DISARM_MAGIC = 21196
 
@@ -109,8 +112,10 @@ class _Link:
     """One UDP socket, its peer and its stream schedule (intervals in us of simulated time)."""
 
     def __init__(self, name: str, host: str, bind_port: int, remote: tuple[str, int],
-                 rates_hz: dict[int, float]) -> None:
+                 rates_hz: dict[int, float], batch_wall_s: float = 0.0) -> None:
         self.name = name
+        self.batch_wall_s = batch_wall_s  # see MavlinkApi (batched telemetry)
+        self.last_flush_wall = -math.inf
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self.sock.bind((host, bind_port))
@@ -156,18 +161,17 @@ class MavlinkApi:
         self._clock = clock
         self._keepalive_wall_s = keepalive_wall_s
         self.batch_wall_s = batch_wall_s
-        self._last_flush_wall = -math.inf
         i = self.instance
         self.links: list[_Link] = []
         try:
             self.links.append(_Link(
                 "api", host, api_bind_port if api_bind_port is not None else API_BIND_BASE_PORT + i,
                 (host, api_remote_port if api_remote_port is not None else API_REMOTE_BASE_PORT + i),
-                telemetry.ONBOARD_RATES_HZ))
+                telemetry.ONBOARD_RATES_HZ, batch_wall_s))
             if gcs:
                 self.links.append(_Link(
                     "gcs", host, gcs_bind_port if gcs_bind_port is not None else GCS_BIND_BASE_PORT + i,
-                    (host, gcs_remote_port), telemetry.GCS_RATES_HZ))
+                    (host, gcs_remote_port), telemetry.GCS_RATES_HZ, batch_wall_s * GCS_BATCH_FACTOR))
         except OSError:
             self.close()
             raise
@@ -221,14 +225,14 @@ class MavlinkApi:
             self._last_poll_wall = wall
             self._read_sockets()
         self._send_streams(wall)
-        if batching:
-            if wall - self._last_flush_wall < self.batch_wall_s and all(
-                    len(link.outbox) < BATCH_MAX_MESSAGES for link in self.links):
-                return  # batched: see the module docstring
-            self._last_flush_wall = wall
         for link in self.links:
-            if link.outbox:
-                self._flush(link)
+            outbox = link.outbox
+            if not outbox:
+                continue
+            if batching and wall - link.last_flush_wall < link.batch_wall_s and len(outbox) < BATCH_MAX_MESSAGES:
+                continue  # batched: see the module docstring
+            link.last_flush_wall = wall
+            self._flush(link)
 
     def _read_sockets(self) -> None:
         """Handle every waiting datagram (one poll syscall, not a failing recv per socket)."""
