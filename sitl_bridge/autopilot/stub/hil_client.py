@@ -230,10 +230,12 @@ class HilClient:
 
     def _handle_bytes(self, data: bytes) -> int:
         parser = self._parser
-        garbage, bad_crc = parser.stats.garbage_bytes, parser.stats.bad_crc
+        parsed = parser.stats
+        garbage, bad_crc = parsed.garbage_bytes, parsed.bad_crc
         frames = parser.feed(data)
-        self.stats.garbage_bytes += parser.stats.garbage_bytes - garbage
-        self.stats.bad_crc += parser.stats.bad_crc - bad_crc
+        if parsed.garbage_bytes != garbage or parsed.bad_crc != bad_crc:  # rare: skip the sums otherwise
+            self.stats.garbage_bytes += parsed.garbage_bytes - garbage
+            self.stats.bad_crc += parsed.bad_crc - bad_crc
         pending: SensorFrame | None = None
         answered = 0
         for frame in frames:

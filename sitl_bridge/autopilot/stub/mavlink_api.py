@@ -14,9 +14,14 @@ Batched telemetry (`batch_wall_s` > 0, for an in-process stub pumped by the lock
 simulated time runs, the streams' messages queue up and go out in one datagram per link every
 `batch_wall_s` of wall time (or every `BATCH_MAX_MESSAGES`), not one datagram per step: each
 datagram wakes the client's receiving thread (MAVSDK), which on a busy machine costs the
-lockstep its CPU. A pump at unchanged simulated time (held: the lockstep's `hold()` and
+lockstep its CPU. The GCS link, a display for people (its streams are 1-20 Hz), batches over
+`GCS_BATCH_FACTOR` times as long: it carries a sixth of the messages, but with the same interval
+sent as many datagrams as the API link (often to a port nobody listens on). A pump at unchanged simulated time (held: the lockstep's `hold()` and
 `idle()`) sends everything queued, so a client reading while the simulation is held sees the
 same telemetry as without batching. Answers (acks, parameters) always go out at once.
+While batching and running, the sockets are also read at most every `POLL_WALL_S` of wall time
+(one `poll` syscall per step otherwise, at thousands of steps per second); a held pump always
+reads them.
 """
 
 from __future__ import annotations
@@ -56,6 +61,8 @@ d = mavlink.dialect
 API_REMOTE_BASE_PORT = API_CLIENT_BASE_PORT  # the stub's name for it
 KEEPALIVE_WALL_S = 1.0
 BATCH_MAX_MESSAGES = 20  # per datagram: well under UDP size limits
+GCS_BATCH_FACTOR = 10  # the GCS link's batch interval, in API link intervals (20 ms wall in-process)
+POLL_WALL_S = 0.0005  # batched and running: read the sockets at most this often (wall)
 FORCE_DISARM_MAGIC = 21196
 
 # SET_POSITION_TARGET_LOCAL_NED type_mask bits (POSITION_TARGET_TYPEMASK)
@@ -105,8 +112,10 @@ class _Link:
     """One UDP socket, its peer and its stream schedule (intervals in us of simulated time)."""
 
     def __init__(self, name: str, host: str, bind_port: int, remote: tuple[str, int],
-                 rates_hz: dict[int, float]) -> None:
+                 rates_hz: dict[int, float], batch_wall_s: float = 0.0) -> None:
         self.name = name
+        self.batch_wall_s = batch_wall_s  # see MavlinkApi (batched telemetry)
+        self.last_flush_wall = -math.inf
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self.sock.bind((host, bind_port))
@@ -118,6 +127,7 @@ class _Link:
         self.intervals_us = {msgid: int(round(1e6 / hz)) for msgid, hz in rates_hz.items() if hz > 0}
         self.default_intervals_us = dict(self.intervals_us)
         self.next_due_us: dict[int, int] = {}
+        self.next_due_any_us = -1  # earliest of next_due_us (-1: scan at the next step)
         self.outbox: list[bytes] = []
 
     def close(self) -> None:
@@ -151,24 +161,24 @@ class MavlinkApi:
         self._clock = clock
         self._keepalive_wall_s = keepalive_wall_s
         self.batch_wall_s = batch_wall_s
-        self._last_flush_wall = -math.inf
         i = self.instance
         self.links: list[_Link] = []
         try:
             self.links.append(_Link(
                 "api", host, api_bind_port if api_bind_port is not None else API_BIND_BASE_PORT + i,
                 (host, api_remote_port if api_remote_port is not None else API_REMOTE_BASE_PORT + i),
-                telemetry.ONBOARD_RATES_HZ))
+                telemetry.ONBOARD_RATES_HZ, batch_wall_s))
             if gcs:
                 self.links.append(_Link(
                     "gcs", host, gcs_bind_port if gcs_bind_port is not None else GCS_BIND_BASE_PORT + i,
-                    (host, gcs_remote_port), telemetry.GCS_RATES_HZ))
+                    (host, gcs_remote_port), telemetry.GCS_RATES_HZ, batch_wall_s * GCS_BATCH_FACTOR))
         except OSError:
             self.close()
             raise
         self._last_stream_time_us: int | None = None
         self._next_due_any_us = -1        # earliest stream deadline over all links
         self._poll: select.poll | None = None
+        self._last_poll_wall = -math.inf
         self._link_by_fd: dict[int, _Link] = {}
         self._last_heartbeat_wall = -math.inf
         self._texts_sent = 0
@@ -208,27 +218,33 @@ class MavlinkApi:
     # --- pump -----------------------------------------------------------------------------------
     def pump(self) -> None:
         """Read and handle every waiting datagram, then send the streams that are due."""
+        running = self.autopilot.time_us != self._last_stream_time_us
+        batching = running and self.batch_wall_s > 0.0
+        wall = self._clock()
+        if not batching or wall - self._last_poll_wall >= POLL_WALL_S:
+            self._last_poll_wall = wall
+            self._read_sockets()
+        self._send_streams(wall)
+        for link in self.links:
+            outbox = link.outbox
+            if not outbox:
+                continue
+            if batching and wall - link.last_flush_wall < link.batch_wall_s and len(outbox) < BATCH_MAX_MESSAGES:
+                continue  # batched: see the module docstring
+            link.last_flush_wall = wall
+            self._flush(link)
+
+    def _read_sockets(self) -> None:
+        """Handle every waiting datagram (one poll syscall, not a failing recv per socket)."""
         if self._poll is None:
             self._poll = select.poll()
             self._link_by_fd = {link.sock.fileno(): link for link in self.links}
             for fd in self._link_by_fd:
                 self._poll.register(fd, select.POLLIN)
-        # one poll syscall instead of a failing recv per socket and step
         for fd, _events in self._poll.poll(0):
             link = self._link_by_fd.get(fd)
             if link is not None:
                 self._receive(link)
-        running = self.autopilot.time_us != self._last_stream_time_us
-        self._send_streams()
-        if running and self.batch_wall_s > 0.0:
-            wall = self._clock()
-            if wall - self._last_flush_wall < self.batch_wall_s and all(
-                    len(link.outbox) < BATCH_MAX_MESSAGES for link in self.links):
-                return  # batched: see the module docstring
-            self._last_flush_wall = wall
-        for link in self.links:
-            if link.outbox:
-                self._flush(link)
 
     def _receive(self, link: _Link) -> None:
         sock = link.sock
@@ -299,28 +315,22 @@ class MavlinkApi:
             self._queue(target, cls, fields)
         return True
 
-    def _send_streams(self) -> None:
+    def _send_streams(self, wall: float) -> None:
         now_us = self.autopilot.time_us
-        wall = self._clock()
         last = self._last_stream_time_us
         texts = self.autopilot.commander.status_texts
         if now_us != last and (now_us >= self._next_due_any_us or last is None or now_us < last or texts):
             self._last_stream_time_us = now_us
             next_any = now_us + 10**9
+            restart = last is None or now_us < last
             built: dict[int, dict | None] = {}   # a message due on both links is built once
             for link in self.links:
-                due = link.next_due_us
-                for msgid, interval in link.intervals_us.items():
-                    t = due.get(msgid)
-                    if t is not None and now_us < t <= now_us + interval:
-                        continue  # not due yet
-                    # stay on a fixed grid; after a gap or a clock reset start a new one
-                    on_grid = t is not None and 0 <= now_us - t < interval
-                    due[msgid] = t + interval if on_grid else now_us + interval
-                    if self.send_now(msgid, link, built) and msgid == d.MAVLINK_MSG_ID_HEARTBEAT:
-                        self._last_heartbeat_wall = wall
-                if due:
-                    next_any = min(next_any, min(due.values()))
+                if now_us < link.next_due_any_us and not restart:
+                    next_any = min(next_any, link.next_due_any_us)
+                    continue  # nothing due on this link: skip its schedule
+                self._send_due(link, now_us, wall, built)
+                link.next_due_any_us = min(link.next_due_us.values()) if link.next_due_us else now_us + 10**9
+                next_any = min(next_any, link.next_due_any_us)
             self._next_due_any_us = next_any
             self._send_status_texts()
         elif now_us != last:
@@ -330,6 +340,19 @@ class MavlinkApi:
             self.send_now(d.MAVLINK_MSG_ID_HEARTBEAT)
             self._last_heartbeat_wall = wall
             self.stats.keepalives += 1
+
+    def _send_due(self, link: _Link, now_us: int, wall: float, built: dict[int, dict | None]) -> None:
+        """Queue every stream of `link` due at `now_us` and schedule its next time."""
+        due = link.next_due_us
+        for msgid, interval in link.intervals_us.items():
+            t = due.get(msgid)
+            if t is not None and now_us < t <= now_us + interval:
+                continue  # not due yet
+            # stay on a fixed grid; after a gap or a clock reset start a new one
+            on_grid = t is not None and 0 <= now_us - t < interval
+            due[msgid] = t + interval if on_grid else now_us + interval
+            if self.send_now(msgid, link, built) and msgid == d.MAVLINK_MSG_ID_HEARTBEAT:
+                self._last_heartbeat_wall = wall
 
     def _send_status_texts(self) -> None:
         texts = self.autopilot.commander.status_texts
@@ -468,7 +491,7 @@ class MavlinkApi:
         else:
             link.intervals_us[msgid] = interval
         link.next_due_us.pop(msgid, None)
-        self._next_due_any_us = -1
+        link.next_due_any_us = self._next_due_any_us = -1
         return CommandResult.ACCEPTED
 
     # parameters ---------------------------------------------------------------------------------
