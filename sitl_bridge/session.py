@@ -71,6 +71,8 @@ class SimSession:
         connect_timeout_s: wall time allowed for autopilots to connect (None: forever).
         actuator_timeout_s: wall time a lockstep step waits for an autopilot's answer.
         host: address the HIL links listen on.
+        api_telemetry: "full" (default) or "client": the MAVLink API link streams only what
+            `sitl_bridge.client` reads (`FleetConfig.api_telemetry`; the Gymnasium env's choice).
     """
 
     def __init__(
@@ -92,12 +94,15 @@ class SimSession:
         connect_timeout_s: float | None = 60.0,
         actuator_timeout_s: float = 5.0,
         host: str = "127.0.0.1",
+        api_telemetry: str = "full",
     ) -> None:
         fleet_class = session_kind(autopilot).fleet_class()
         if not speed_factor >= 0:
             raise ConfigError(f"speed_factor: expected a number >= 0, got {speed_factor!r}")
         if ground_truth_estimate and not fleet_class.supports_ground_truth:
             raise ConfigError(f"ground_truth_estimate: the {autopilot} autopilot estimates from its sensors only")
+        if api_telemetry not in ("full", "client"):
+            raise ConfigError(f"api_telemetry: expected 'full' or 'client', got {api_telemetry!r}")
         self.world = world if isinstance(world, World) else load_world(resolve_world(world))
         if num_vehicles is not None:
             self.world = with_vehicle_count(self.world, num_vehicles)
@@ -118,7 +123,7 @@ class SimSession:
             ground_truth_estimate=ground_truth_estimate, connect_timeout_s=connect_timeout_s,
             px4_bin=None if px4_bin is None else os.fspath(px4_bin),
             px4_rootfs=None if px4_rootfs is None else os.fspath(px4_rootfs),
-            run_dir=None if run_dir is None else Path(run_dir)))
+            run_dir=None if run_dir is None else Path(run_dir), api_telemetry=api_telemetry))
         self.sim: Simulation | None = None
         self.sensors: list[SensorSuite] = []
         self.links: list[HilLink] = []

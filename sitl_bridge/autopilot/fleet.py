@@ -91,6 +91,9 @@ class FleetConfig:
     px4_rootfs: str | None = None
     run_dir: Path | None = None
     """Where autopilot processes keep working directories and logs (None: a temp dir)."""
+    api_telemetry: str = "full"
+    """What the MAVLink API link streams to MAVSDK: "full" (the autopilot's usual onboard set)
+    or "client" (only what `sitl_bridge.client` reads; kinds that support it: `px4`)."""
 
 
 @dataclass(frozen=True)

@@ -258,7 +258,8 @@ class Px4SitlFleet(AutopilotFleet):
         # px4 resolves px4_params/ itself (wall timeouts via env + read-back); only extras here.
         px4_config = Px4Config.create(config.px4_bin, run_dir, rootfs=config.px4_rootfs,
                                       speed_factor=config.speed_factor, home=config.world.home,
-                                      extra_params=config.params, keep_logs=self._temp_run_dir is None)
+                                      extra_params=config.params, keep_logs=self._temp_run_dir is None,
+                                      api_streams="client" if config.api_telemetry == "client" else "onboard")
         self.px4 = Px4Fleet(px4_config, self.instances)
         self.px4.start()
         return []

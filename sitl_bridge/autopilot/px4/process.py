@@ -39,6 +39,10 @@ RC_MAVLINK = PARAMS_DIR / "px4-rc.mavlink"
 `. px4-rc.mavlink` before PX4's own because its folder comes first on PX4's PATH."""
 
 
+API_STREAMS = ("onboard", "client")
+"""`Px4Config.api_streams` choices (px4-rc.mavlink reads SITL_BRIDGE_API_STREAMS)."""
+
+
 class Px4Error(RuntimeError):
     """PX4 could not be found, started or made ready."""
 
@@ -117,6 +121,14 @@ class Px4Config:
     log_cap_bytes: int = DEFAULT_LOG_CAP_BYTES
     keep_logs: bool = True
     """False: `run_dir` is a temp dir removed on close, so reports do not name console.log."""
+    api_streams: str = "onboard"
+    """What the MAVLink API link (MAVSDK's) streams: "onboard", PX4's onboard set (~50 streams,
+    what a user's MAVSDK script may expect), or "client", only what `sitl_bridge.client` reads
+    (px4-rc.mavlink lists them): MAVSDK and PX4 then spend far less CPU per simulated second."""
+
+    def __post_init__(self) -> None:
+        if self.api_streams not in API_STREAMS:
+            raise Px4Error(f"api_streams: expected one of {', '.join(API_STREAMS)}, got {self.api_streams!r}")
 
     @classmethod
     def create(
@@ -238,8 +250,10 @@ class Px4Autopilot:
         config = self.config
         env = dict(os.environ)
         for key in list(env):
-            if key.startswith("PX4_PARAM_") or key in ("PX4_SYS_AUTOSTART", "PX4_SIM_SPEED_FACTOR"):
+            if key.startswith("PX4_PARAM_") or key in ("PX4_SYS_AUTOSTART", "PX4_SIM_SPEED_FACTOR",
+                                                         "SITL_BRIDGE_API_STREAMS"):
                 del env[key]  # only what this configuration says
+        env["SITL_BRIDGE_API_STREAMS"] = config.api_streams
         env["PX4_SIM_MODEL"] = config.airframe
         if config.speed_factor > 0:
             env["PX4_SIM_SPEED_FACTOR"] = format_value(config.speed_factor)

@@ -75,7 +75,10 @@ class SessionBackend:
             autopilot=options.autopilot, speed_factor=options.speed_factor,
             instance_base=options.instance_base, px4_bin=options.px4_bin, gui=options.uses_gui,
             visual=options.render_mode is not None,
-            ground_truth_estimate=options.ground_truth)
+            ground_truth_estimate=options.ground_truth,
+            # MAVSDK here reads only mode, armed, landed state, position and health: the API
+            # link's full onboard telemetry would cost MAVSDK and PX4 CPU every step (px4)
+            api_telemetry="client")
         self.session: SimSession | None = None
         self.fleet: Fleet | None = None
         self.claim: InstanceClaim | None = None
