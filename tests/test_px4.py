@@ -23,6 +23,7 @@ from sitl_bridge.autopilot.px4 import (  # noqa: E402
     Px4Autopilot,
     Px4Config,
     Px4Died,
+    Px4Error,
     Px4Fleet,
     Px4Param,
     load_param_overrides,
@@ -33,6 +34,7 @@ from sitl_bridge.hil import HilError, HilLink, Lockstep  # noqa: E402
 from sitl_bridge.physics.simulation import Simulation  # noqa: E402
 from sitl_bridge.ports import api_bind_port, api_client_port  # noqa: E402
 from sitl_bridge.sensors.suite import SensorSuite  # noqa: E402
+from sitl_bridge.session import SimSession  # noqa: E402
 from sitl_bridge.world.loader import load_world  # noqa: E402
 
 WORLDS = Path(__file__).resolve().parents[1] / "worlds"
@@ -75,6 +77,19 @@ def test_environment_for_external_simulator(tmp_path):
     at_max = Px4Autopilot(Px4Config(px4_bin=Path("/bin/true"), run_dir=tmp_path, rootfs=tmp_path,
                                     speed_factor=0.0, params=params), 7).environment()
     assert "PX4_SIM_SPEED_FACTOR" not in at_max  # rcS would scale the timeouts to 0
+    assert env["SITL_BRIDGE_API_STREAMS"] == "onboard"  # px4-rc.mavlink: PX4's onboard streams
+
+
+def test_api_streams_choice_reaches_px4_and_is_checked(tmp_path, monkeypatch):
+    monkeypatch.setenv("SITL_BRIDGE_API_STREAMS", "client")  # only the configuration decides
+    base = {"px4_bin": Path("/bin/true"), "run_dir": tmp_path, "rootfs": tmp_path, "params": {}}
+    assert Px4Autopilot(Px4Config(**base), 1).environment()["SITL_BRIDGE_API_STREAMS"] == "onboard"
+    client = Px4Autopilot(Px4Config(**base, api_streams="client"), 1).environment()
+    assert client["SITL_BRIDGE_API_STREAMS"] == "client"
+    with pytest.raises(Px4Error, match="api_streams"):
+        Px4Config(**base, api_streams="everything")
+    with pytest.raises(ConfigError, match="api_telemetry"):
+        SimSession("empty", autopilot="stub", api_telemetry="some")
 
 
 def _stand_in(tmp_path: Path, body: str) -> Path:
@@ -148,6 +163,11 @@ def test_console_log_is_capped(tmp_path):
 
 
 # -- with a real PX4 -----------------------------------------------------------------------------
+CLIENT_STREAMS = {"HEARTBEAT", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "GPS_RAW_INT", "EXTENDED_SYS_STATE",
+                  "SYS_STATUS", "HOME_POSITION"}
+"""What px4-rc.mavlink streams on the API link with api_streams="client" (sitl_bridge.client reads)."""
+
+
 class ApiClient:
     """pymavlink on PX4's API link (we bind 14540+i, PX4 sends from 14580+i)."""
 
@@ -164,6 +184,7 @@ class ApiClient:
         self.custom_mode = 0
         self.landed_state = 0
         self.texts: list[str] = []
+        self.seen: dict[str, int] = {}  # message type -> count
 
     def command(self, command: int, *params: float) -> None:
         p = list(params) + [0.0] * (7 - len(params))
@@ -186,6 +207,7 @@ class ApiClient:
                 if message.get_srcSystem() != self.system:
                     continue  # only our PX4 (the machine may run other simulators)
                 kind = message.get_type()
+                self.seen[kind] = self.seen.get(kind, 0) + 1
                 if kind == "COMMAND_ACK":
                     self.acks[message.command] = message.result
                 elif kind == "HEARTBEAT" and message.get_srcComponent() == 1:
@@ -206,6 +228,39 @@ class ApiClient:
 
     def close(self) -> None:
         self.sock.close()
+
+
+@pytest.mark.px4
+@pytest.mark.timeout(180)
+def test_px4_client_api_streams_only_what_the_client_reads(px4_bin, px4_instance, tmp_path):
+    """api_streams="client" (the env's choice): the API link carries what sitl_bridge.client
+    reads (mode, armed, landed state, position, health), not PX4's heavy onboard streams."""
+    instance = px4_instance
+    world = load_world(WORLDS / "empty.yaml")
+    sim = Simulation(world)
+    link = HilLink(instance)
+    api = ApiClient(instance)
+    config = Px4Config.create(px4_bin, tmp_path, speed_factor=0, home=world.home, api_streams="client")
+    fleet = Px4Fleet(config, [instance])
+    lockstep = Lockstep(sim, [SensorSuite(world.home, seed=0)], [link], speed_factor=0, actuator_timeout_s=5.0)
+    try:
+        fleet.start()
+        fleet.connect([link], timeout_s=60)
+        fleet.wait_ready(lockstep, timeout_s=120)
+        api.poll()
+        api.seen.clear()  # from here: steady streaming
+        for _ in range(20):
+            lockstep.run_for(0.1)
+            api.poll()
+    finally:
+        fleet.stop()
+        api.close()
+        link.close()
+        sim.close()
+    assert {"HEARTBEAT", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "SYS_STATUS"} <= set(api.seen), api.seen
+    assert not {"ATTITUDE", "ATTITUDE_QUATERNION", "HIGHRES_IMU", "ODOMETRY"} & set(api.seen), api.seen
+    streamed = {kind for kind, count in api.seen.items() if count >= 5}  # not one-off answers
+    assert streamed <= CLIENT_STREAMS, api.seen
 
 
 @pytest.mark.px4

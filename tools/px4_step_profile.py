@@ -13,13 +13,14 @@ action (episodes that end are reset, untimed) and reports per env step:
   time the run without it).
 
 Usage: PX4_BIN=... PYTHONPATH=. python tools/px4_step_profile.py [--world empty.yaml]
-       [--steps 60] [--action 7] [--count] [--json FILE]
+       [--steps 60] [--action 7] [--count] [--breakdown N] [--json FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -27,6 +28,7 @@ import socket
 import struct
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -127,11 +129,79 @@ def _sniff(ports: dict[int, str], stop: Any, result: Any) -> None:
     result["datagrams"] = dict(datagrams)
 
 
+# (component, parent or "", object path, method): timed in thread CPU with `--breakdown`
+TIMED = (
+    ("lockstep.step", "", "lockstep", "step"),
+    ("physics (sim.step)", "lockstep.step", "sim", "step"),
+    ("sensors (sample_values)", "lockstep.step", "suite", "sample_values"),
+    ("ground truth", "lockstep.step", "suite", "ground_truth"),
+    ("sim.state", "lockstep.step", "sim", "state"),
+    ("HIL encode + send", "lockstep.step", "link", "send_sensor_values"),
+    ("HIL send (syscall)", "HIL encode + send", "link", "_send"),
+    ("collect answers", "lockstep.step", "lockstep", "_collect_answers"),
+    ("wait (select)", "collect answers", "lockstep", "_wait_readable"),
+    ("HIL receive + decode", "collect answers", "link", "poll"),
+    ("pace", "lockstep.step", "lockstep", "_pace"),
+)
+
+
+@contextlib.contextmanager
+def _timers(objects: dict[str, Any]) -> Iterator[tuple[dict[str, int], dict[str, int]]]:
+    """Wrap each TIMED method on its instance with a thread-CPU accumulator (inclusive, ns)."""
+    clock = time.thread_time_ns
+    totals = {name: 0 for name, *_ in TIMED}
+    calls = {name: 0 for name, *_ in TIMED}
+    patched = []
+    for name, _parent, path, method in TIMED:
+        obj = objects[path]
+        original = getattr(obj, method)
+
+        def timed(*args: Any, _f: Any = original, _n: str = name, **kwargs: Any) -> Any:
+            t0 = clock()
+            try:
+                return _f(*args, **kwargs)
+            finally:
+                totals[_n] += clock() - t0
+                calls[_n] += 1
+
+        setattr(obj, method, timed)
+        patched.append((obj, method))
+    try:
+        yield totals, calls
+    finally:
+        for obj, method in patched:
+            delattr(obj, method)
+
+
+def _breakdown(env: Any, steps: int, action: int) -> dict[str, float]:
+    """Thread CPU ms per env step of each TIMED component, own time (children subtracted;
+    each timed call adds ~1 us of timer cost, attributed to its parent)."""
+    session = env.backend.session
+    lockstep = session.lockstep
+    objects = {"lockstep": lockstep, "sim": lockstep.sim, "suite": lockstep.sensors[0], "link": lockstep.links[0]}
+    done = 0
+    with _timers(objects) as (totals, calls):
+        while done < steps:
+            _, _, term, trunc, _ = env.step(action)
+            done += 1
+            if term or trunc:
+                break  # a reset would rebuild the objects
+    own = {name: float(totals[name]) for name in totals}
+    for name, parent, *_ in TIMED:
+        if parent:
+            own[parent] -= totals[name]
+    out = {name: round(value / 1e6 / done, 2) for name, value in own.items()}
+    out["calls per env step: lockstep.step"] = calls["lockstep.step"] / done
+    out["env steps"] = done
+    return out
+
+
 def _px4_pid(env: Any) -> int:
     return env.backend.session.autopilots.px4.autopilots[0].pid
 
 
-def profile(world: str, steps: int, action: int, warmup: int, count: bool, seed: int = 0) -> dict[str, Any]:
+def profile(world: str, steps: int, action: int, warmup: int, count: bool, seed: int = 0,
+            breakdown: int = 0) -> dict[str, Any]:
     """Run the env and return the per-env-step figures (see module docstring)."""
     env = make_env(worlds_dir() / world, autopilot="px4", speed_factor=0.0, seed=seed)
     sniffer = None
@@ -196,6 +266,9 @@ def profile(world: str, steps: int, action: int, warmup: int, count: bool, seed:
             "px4_threads_cpu_ms": {k: round(1e3 * v / done, 2)
                                    for k, v in sorted(px4_threads.items(), key=lambda kv: -kv[1]) if v > 0},
         }
+        if breakdown:
+            env.reset()
+            result["breakdown_cpu_ms"] = _breakdown(env, breakdown, action)
         if count:
             shared["snapshot"] = True
             time.sleep(0.5)
@@ -234,9 +307,11 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--action", type=int, default=7, help="constant action (7: hover)")
     parser.add_argument("--count", action="store_true", help="sniff MAVLink on lo (root)")
+    parser.add_argument("--breakdown", type=int, default=0, metavar="N",
+                        help="then N more env steps with the lockstep's parts timed (thread CPU)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
-    result = profile(args.world, args.steps, args.action, args.warmup, args.count)
+    result = profile(args.world, args.steps, args.action, args.warmup, args.count, breakdown=args.breakdown)
     text = json.dumps(result, indent=1)
     print(text)
     if args.json:

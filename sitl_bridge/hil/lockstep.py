@@ -323,14 +323,19 @@ class Lockstep:
 
     def _collect_answers(self, time_us: int) -> None:
         links = self.links
+        pumps = self.pumps
         for link in links:
-            link.poll()
+            # An autopilot in another process (PX4) has not answered a sensor message sent
+            # microseconds ago: skip that read (a syscall that finds nothing, every step) and
+            # let select below wait for it. Still read a link whose first answer is awaited
+            # (answered() is true until then) and, with pumps, in-process answers.
+            if pumps or not link.actuators_flowing:
+                link.poll()
         pending = [link for link in links if not link.answered()]
         if not pending:
             return
         start = time.monotonic()
         deadline = start + self.actuator_timeout_s
-        pumps = self.pumps
         while pending:
             now = time.monotonic()
             remaining = deadline - now
