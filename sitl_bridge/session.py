@@ -70,9 +70,7 @@ class SimSession:
         run_dir: where autopilot processes keep working directories and logs (default: temp).
         connect_timeout_s: wall time allowed for autopilots to connect (None: forever).
         actuator_timeout_s: wall time a lockstep step waits for an autopilot's answer.
-        host: address the HIL links listen on.
-        api_telemetry: "full" (default) or "client": the MAVLink API link streams only what
-            `sitl_bridge.client` reads (`FleetConfig.api_telemetry`; the Gymnasium env's choice).
+        host: address the HIL links listen on. api_telemetry: see `FleetConfig.api_telemetry`.
     """
 
     def __init__(
@@ -93,16 +91,13 @@ class SimSession:
         run_dir: str | os.PathLike[str] | None = None,
         connect_timeout_s: float | None = 60.0,
         actuator_timeout_s: float = 5.0,
-        host: str = "127.0.0.1",
-        api_telemetry: str = "full",
+        host: str = "127.0.0.1", api_telemetry: str = "full",
     ) -> None:
         fleet_class = session_kind(autopilot).fleet_class()
         if not speed_factor >= 0:
             raise ConfigError(f"speed_factor: expected a number >= 0, got {speed_factor!r}")
         if ground_truth_estimate and not fleet_class.supports_ground_truth:
             raise ConfigError(f"ground_truth_estimate: the {autopilot} autopilot estimates from its sensors only")
-        if api_telemetry not in ("full", "client"):
-            raise ConfigError(f"api_telemetry: expected 'full' or 'client', got {api_telemetry!r}")
         self.world = world if isinstance(world, World) else load_world(resolve_world(world))
         if num_vehicles is not None:
             self.world = with_vehicle_count(self.world, num_vehicles)

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
+from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil.errors import LinkClosed, LockstepTimeout
 from sitl_bridge.ports import MAX_INSTANCE, VehiclePorts, vehicle_ports
 
@@ -94,6 +95,10 @@ class FleetConfig:
     api_telemetry: str = "full"
     """What the MAVLink API link streams to MAVSDK: "full" (the autopilot's usual onboard set)
     or "client" (only what `sitl_bridge.client` reads; kinds that support it: `px4`)."""
+
+    def __post_init__(self) -> None:
+        if self.api_telemetry not in ("full", "client"):
+            raise ConfigError(f"api_telemetry: expected 'full' or 'client', got {self.api_telemetry!r}")
 
 
 @dataclass(frozen=True)
