@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -28,9 +27,10 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+from method_timers import timed_methods  # tools/ is on sys.path when run as a script
 
 from sitl_bridge.envs import make_env, worlds_dir
 from sitl_bridge.ports import API_CLIENT_BASE_PORT, GCS_BIND_BASE_PORT
@@ -145,34 +145,6 @@ TIMED = (
 )
 
 
-@contextlib.contextmanager
-def _timers(objects: dict[str, Any]) -> Iterator[tuple[dict[str, int], dict[str, int]]]:
-    """Wrap each TIMED method on its instance with a thread-CPU accumulator (inclusive, ns)."""
-    clock = time.thread_time_ns
-    totals = {name: 0 for name, *_ in TIMED}
-    calls = {name: 0 for name, *_ in TIMED}
-    patched = []
-    for name, _parent, path, method in TIMED:
-        obj = objects[path]
-        original = getattr(obj, method)
-
-        def timed(*args: Any, _f: Any = original, _n: str = name, **kwargs: Any) -> Any:
-            t0 = clock()
-            try:
-                return _f(*args, **kwargs)
-            finally:
-                totals[_n] += clock() - t0
-                calls[_n] += 1
-
-        setattr(obj, method, timed)
-        patched.append((obj, method))
-    try:
-        yield totals, calls
-    finally:
-        for obj, method in patched:
-            delattr(obj, method)
-
-
 def _breakdown(env: Any, steps: int, action: int) -> dict[str, float]:
     """Thread CPU ms per env step of each TIMED component, own time (children subtracted;
     each timed call adds ~1 us of timer cost, attributed to its parent)."""
@@ -180,7 +152,7 @@ def _breakdown(env: Any, steps: int, action: int) -> dict[str, float]:
     lockstep = session.lockstep
     objects = {"lockstep": lockstep, "sim": lockstep.sim, "suite": lockstep.sensors[0], "link": lockstep.links[0]}
     done = 0
-    with _timers(objects) as (totals, calls):
+    with timed_methods(objects, TIMED) as (totals, calls):
         while done < steps:
             _, _, term, trunc, _ = env.step(action)
             done += 1

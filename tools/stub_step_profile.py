@@ -24,11 +24,13 @@ import json
 import pstats
 import statistics
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from typing import Any
 
-from sitl_bridge.bench.stub import free_instance_base
+from method_timers import timed_methods  # tools/ is on sys.path when run as a script
+
+from sitl_bridge.autopilot.allocation import claim_free_instances
+from sitl_bridge.bench.stub import BENCH_INSTANCE_BASE
 from sitl_bridge.client.fleet import Fleet
 from sitl_bridge.session import SimSession, default_world_path
 
@@ -69,35 +71,6 @@ def _objects(session: SimSession) -> dict[str, Any]:
     return {"lockstep": lockstep, "sim": lockstep.sim, "suite": lockstep.sensors[0], "link": lockstep.links[0],
             "hil": hil, "parser": hil._parser, "autopilot": vehicle.autopilot,
             "estimator": vehicle.autopilot.estimator, "commander": vehicle.autopilot.commander, "api": vehicle.api}
-
-
-@contextmanager
-def _timers(objects: dict[str, Any], clock: Callable[[], int]) -> Iterator[tuple[dict[str, int], dict[str, int]]]:
-    """Wrap each TIMED method on its instance with an accumulator of `clock` ns (inclusive)."""
-    totals = {name: 0 for name, *_ in TIMED}
-    calls = {name: 0 for name, *_ in TIMED}
-    patched = []
-    for name, _parent, path, method in TIMED:
-        obj = objects[path]
-        if obj is None or not hasattr(obj, method):
-            continue
-        original = getattr(obj, method)
-
-        def timed(*args: Any, _f: Callable[..., Any] = original, _n: str = name, **kwargs: Any) -> Any:
-            t0 = clock()
-            try:
-                return _f(*args, **kwargs)
-            finally:
-                totals[_n] += clock() - t0
-                calls[_n] += 1
-
-        setattr(obj, method, timed)
-        patched.append((obj, method))
-    try:
-        yield totals, calls
-    finally:
-        for obj, method in patched:
-            delattr(obj, method)  # back to the class's method
 
 
 def _timer_cost_ns(clock: Callable[[], int], n: int = 20000) -> tuple[float, float]:
@@ -143,10 +116,10 @@ def _thread_cpu_us(session: SimSession, seconds: float) -> float:
 
 def profile(seconds: float, reps: int, cprofile_top: int) -> dict[str, Any]:
     """The figures described in the module docstring."""
-    base = free_instance_base(1)
     out: dict[str, Any] = {}
-    with SimSession(default_world_path(), autopilot="stub", speed_factor=0, instance_base=base,
-                    num_vehicles=1) as session, Fleet.for_session(session) as fleet:
+    with claim_free_instances(1, BENCH_INSTANCE_BASE) as claim, \
+            SimSession(default_world_path(), autopilot="stub", speed_factor=0, instance_base=claim,
+                       num_vehicles=1) as session, Fleet.for_session(session) as fleet:
         fleet.wait_healthy()
         fleet.arm()
         fleet.takeoff(2.5)
@@ -164,7 +137,7 @@ def profile(seconds: float, reps: int, cprofile_top: int) -> dict[str, Any]:
                 cost = _timer_cost_ns(clock)
                 out[f"{kind}_timer_cost_ns"] = cost
                 for _ in range(reps):
-                    with _timers(objects, clock) as (totals, calls):
+                    with timed_methods(objects, TIMED, clock) as (totals, calls):
                         session.lockstep.run_for(seconds)  # type: ignore[union-attr]
                     runs.append(_exclusive_ns(totals, calls, cost))
                 # per component, the median over the runs
