@@ -56,6 +56,30 @@ def test_thesis_geometry_facts():
     assert kinds == {"PatrolMover", "RandomLegsMover"}
 
 
+def test_street_van_always_blocks_the_line_and_no_mover_passes_through_it():
+    street = load_world(WORLDS / "street.yaml")
+    ceiling = street.workspace.max_m[2]
+    birds = [o for o in street.obstacles if o.mover is not None and o.shape.kind == "sphere"]
+    walkers = [o for o in street.obstacles if o.mover is not None and o.shape.kind == "cylinder"]
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        layout = realize(street, rng)
+        van = next(o for o in layout.obstacles if o.name == "van")
+        (x, y, _), (sx, sy, sz) = van.position_m, van.shape.size_m
+        assert sz >= ceiling - 0.1  # no flight level over it
+        # the straight start-goal line runs through it (lidar crash distance 0.4 m): no constant action passes
+        (x0, y0, _), (x1, y1, _) = layout.spawn_positions_m[0], layout.goals[0].center_m
+        line_x = x0 + (x1 - x0) * (y - y0) / (y1 - y0)
+        assert x - sx / 2 - 0.4 < line_x < x + sx / 2 + 0.4
+        for bird in birds:  # pigeons fly beside it, never through it
+            lo, hi = bird.mover.min_m, bird.mover.max_m
+            r = bird.shape.radius_m
+            assert lo[0] - r > x + sx / 2 or hi[0] + r < x - sx / 2 or lo[2] - r > sz
+        for walker in walkers:  # the crossings are clear of it
+            crossing = {p[1] for p in walker.mover.points_m[1:3]}
+            assert all(abs(cy - y) > sy / 2 + walker.shape.radius_m for cy in crossing)
+
+
 def test_worlds_check_passes_for_all_shipped(capsys):
     files = [str(WORLDS / f"{n}.yaml") for n in SHIPPED]
     assert run_check(*files) == 0

@@ -26,7 +26,11 @@ class Pose:
 
 
 class Patrol:
-    """Back and forth along a polyline at constant speed (a pedestrian); starts at the first point."""
+    """Back and forth along a polyline at constant speed (a pedestrian).
+
+    Starts at the first point, or with `spec.random_start` at a uniformly drawn distance along
+    the out-and-back route (so half the draws start on the way back).
+    """
 
     def __init__(self, spec: PatrolMover) -> None:
         self.spec = spec
@@ -40,16 +44,26 @@ class Patrol:
                 self._segments.append((a, b, length))
         self._cycle_m = sum(s[2] for s in self._segments)
         self._distance_m = 0.0
+        # the simulation asks for the pose more than once per physics step: computed once
+        self._pose: Pose | None = None
 
     @property
     def speed_m_s(self) -> float:
         return self.spec.speed_m_s
 
     def reset(self, rng: np.random.Generator) -> None:
-        self._distance_m = 0.0
+        # Draw only with random_start: the shared mover stream (and so every other mover of
+        # the existing worlds) stays as it was.
+        self._distance_m = float(rng.uniform(0.0, self._cycle_m)) if self.spec.random_start else 0.0
+        self._pose = None
 
     def pose(self) -> Pose:
         """Where the mover is now."""
+        if self._pose is None:
+            self._pose = self._compute_pose()
+        return self._pose
+
+    def _compute_pose(self) -> Pose:
         s = self._distance_m
         index = 0
         while index < len(self._segments) - 1 and s > self._segments[index][2]:
@@ -66,6 +80,7 @@ class Patrol:
         """Move on by dt."""
         if self._cycle_m > 0.0:
             self._distance_m = (self._distance_m + self.spec.speed_m_s * dt_s) % self._cycle_m
+            self._pose = None
 
 
 class RandomLegs:

@@ -244,10 +244,15 @@ class Simulation:
     def begin_step(self) -> None:
         """First part of `step`: place the moving obstacles for this step."""
         cid = self.client_id
-        for body, mover in self._movers:
+        facings = self._mover_facings
+        for k, (body, mover) in enumerate(self._movers):
             pose = mover.pose()
-            p.resetBasePositionAndOrientation(body, pose.position_m, self._facing(pose.yaw_rad, pose.pitch_rad),
-                                              physicsClientId=cid)
+            # a mover turns only at a leg's end: reuse the last orientation while it flies straight
+            yaw, pitch, facing = facings[k]
+            if yaw != pose.yaw_rad or pitch != pose.pitch_rad:
+                facing = self._facing(pose.yaw_rad, pose.pitch_rad)
+                facings[k] = (pose.yaw_rad, pose.pitch_rad, facing)
+            p.resetBasePositionAndOrientation(body, pose.position_m, facing, physicsClientId=cid)
             p.resetBaseVelocity(body, pose.velocity_m_s, (0.0, 0.0, 0.0), physicsClientId=cid)
 
     def push_wrench(self, vehicle: int, force_enu_n: Vec3, torque_enu_n_m: Vec3) -> None:
@@ -385,6 +390,8 @@ class Simulation:
         self._body_kind[self._ground] = ("ground", "ground")
         self._obstacle_bodies: dict[str, int] = {}
         self._movers: list[tuple[int, Patrol | RandomLegs]] = []
+        #: per mover: the (yaw, pitch) of its last orientation and that orientation (pybullet)
+        self._mover_facings: list[tuple[float, float, tuple[float, float, float, float]]] = []
         self._mover_radii: list[float] = []
         self._static_boxes: list[tuple[float, ...]] = []
         self._vehicle_radius_m = 0.5 * math.sqrt(sum(s * s for s in self.params.collision_box_m))
@@ -402,6 +409,7 @@ class Simulation:
             self._body_kind[body] = ("obstacle", spec.name)
             if mover is not None:
                 self._movers.append((body, mover))
+                self._mover_facings.append((math.nan, math.nan, (0.0, 0.0, 0.0, 1.0)))
                 self._mover_radii.append(_bounding_radius_m(placement.shape))
             else:
                 lo, hi = p.getAABB(body, physicsClientId=cid)

@@ -315,9 +315,9 @@ def _parse_mover(node: Node) -> PatrolMover | RandomLegsMover:
     kind = node.get("type").string(("patrol", "random_legs"))
     speed = _num(node.get("speed"), positive=True, maximum=MAX_SPEED_M_S)
     if kind == "patrol":
-        node.reject_unknown({"type", "speed", "points"})
+        node.reject_unknown({"type", "speed", "points", "random_start"})
         points = tuple(_vec(p, 3) for p in node.get("points").list(min_len=2))
-        return PatrolMover(points, speed)
+        return PatrolMover(points, speed, node.get("random_start", False).boolean())
     node.reject_unknown({"type", "speed", "min", "max"})
     box = _parse_box(node, "mover", strict=False)
     return RandomLegsMover(box.min_m, box.max_m, speed)

@@ -40,7 +40,10 @@ The `world:` section, every key (optional ones show their default)::
           yaw: 0
           color: [r, g, b, a]
           mass: 1.0                      # moving obstacles only
-          mover: {type: patrol, speed: 1.4, points: [[x, y, z], [x, y, z]]}     # or:
+          mover: {type: patrol, speed: 1.4, points: [[x, y, z], [x, y, z]],
+                  random_start: false}   # true: each episode starts at a uniformly drawn point
+                                         # of the out-and-back route (seeded), not at points[0]
+          # or:
           mover: {type: random_legs, speed: 8, min: [x, y, z], max: [x, y, z]}
           randomize:                     # static obstacles only, per episode
             along_path: {vehicle: drone0, fraction: [0.35, 0.65], lateral: 0.5}  # on spawn->goal line
@@ -138,10 +141,16 @@ class Shape:
 
 @dataclass(frozen=True)
 class PatrolMover:
-    """Walks back and forth along a polyline at constant speed (a pedestrian)."""
+    """Walks back and forth along a polyline at constant speed (a pedestrian).
+
+    With `random_start` each episode starts at a uniformly drawn distance along the out-and-back
+    route (drawn from the episode's seeded mover stream), so a policy cannot learn the timing of
+    a walker from the clock; without it every episode starts at the first point.
+    """
 
     points_m: tuple[Vec3, ...]
     speed_m_s: float
+    random_start: bool = False
 
 
 @dataclass(frozen=True)
