@@ -17,8 +17,8 @@ datagram wakes the client's receiving thread (MAVSDK), which on a busy machine c
 lockstep its CPU. The GCS link, a display for people (its streams are 1-20 Hz), batches over
 `GCS_BATCH_FACTOR` times as long: it carries a sixth of the messages, but with the same interval
 sent as many datagrams as the API link (often to a port nobody listens on). A pump at unchanged
-simulated time (held: the lockstep's `hold()` and `idle()`) sends everything queued, so a client reading while the simulation is held sees the
-same telemetry as without batching. Answers (acks, parameters) always go out at once.
+simulated time (held: the lockstep's `hold()` and `idle()`) sends everything queued, so a
+client reading while the simulation is held sees the same telemetry as without batching. Answers (acks, parameters) always go out at once.
 While batching and running, the sockets are also read at most every `POLL_WALL_S` of wall time
 (one `poll` syscall per step otherwise, at thousands of steps per second); a held pump always
 reads them.
