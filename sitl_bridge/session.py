@@ -26,7 +26,6 @@ import contextlib
 import logging
 import os
 import sys
-import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -331,15 +330,8 @@ class SimSession:
         sends in wall time from its own threads: without this wait a busy machine would let
         the same command act at different steps from run to run. Returns at once without
         in-process autopilots (a real PX4 reads its socket in lockstep, as PX4 does)."""
-        runner = self._require_runner()
-        if not runner.lockstep.pumps:
-            return
-        deadline = time.monotonic() + timeout_s
-        while not until():
-            if time.monotonic() > deadline:
-                raise SessionError(f"MAVLink commands not delivered to the stubs within {timeout_s:g} s (wall)")
-            with runner.exclusive() as lockstep:
-                lockstep.idle(0.001, until)  # returns once delivered, not after the whole 1 ms
+        if not self._require_runner().serve_until(until, timeout_s):
+            raise SessionError(f"MAVLink commands not delivered to the stubs within {timeout_s:g} s (wall)")
 
     def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]],
                           timeout_s: float = DELIVERY_TIMEOUT_S) -> None:

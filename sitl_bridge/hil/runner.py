@@ -21,7 +21,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 
 from sitl_bridge.hil.lockstep import Lockstep
 
@@ -84,6 +85,20 @@ class SimRunner:
         self.hold()
         with self._lock:
             yield self.lockstep
+
+    def serve_until(self, until: Callable[[], bool], timeout_s: float) -> bool:
+        """Held, without advancing simulated time: serve the lockstep's pumps (in-process
+        autopilots' MAVLink APIs) until `until()` holds; False after `timeout_s` (wall). True at
+        once when there are no pumps (nothing in-process to serve)."""
+        if not self.lockstep.pumps:
+            return True
+        deadline = time.monotonic() + timeout_s
+        while not until():
+            if time.monotonic() > deadline:
+                return False
+            with self.exclusive() as lockstep:  # idle returns once `until()` holds, not after 1 ms
+                lockstep.idle(0.001, until)
+        return True
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the thread (holding first). Idempotent."""
