@@ -54,7 +54,8 @@ ServeUntil = Callable[[Callable[[], bool], float], None]
 
 PX4_SETPOINT_DELIVERY_S = 0.02
 """Wall seconds a held session waits for a process-based autopilot that reads its MAVLink
-socket in wall time to take in new setpoints (see `deliver_setpoints`)."""
+socket in wall time to take in new setpoints where their delivery cannot be observed (see
+`deliver_setpoints`; on Linux `autopilot/px4/delivery.py` observes it)."""
 
 
 class SessionError(RuntimeError):

@@ -30,6 +30,7 @@ from mavsdk.plugins.offboard import Offboard, OffboardError, VelocityNedYaw
 from mavsdk.plugins.param import Param, ParamError
 from mavsdk.plugins.telemetry import FlightMode, LandedState, Telemetry
 
+from sitl_bridge.autopilot.px4.delivery import own_threads, tag_mavsdk_io_thread
 from sitl_bridge.client.actions import ACTION_DURATION_S, ACTION_SPEED_M_S, action_velocity_ned
 from sitl_bridge.client.mavsdk_log import route_mavsdk_logs
 from sitl_bridge.ports import API_CLIENT_BASE_PORT
@@ -156,7 +157,10 @@ class OffboardClient:
     def _connect(self, timeout_s: float) -> OffboardClient:
         route_mavsdk_logs()
         self._config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+        threads = own_threads()
         self._mavsdk = Mavsdk(self._config)
+        # named, so a held session can see it go idle after sending (`wait_delivered`)
+        tag_mavsdk_io_thread(threads)
         self._mavsdk.add_any_connection_with_handle(self.url)
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"mavsdk-{self.instance}")
         found: list[Any] = []

@@ -18,9 +18,11 @@ from sitl_bridge.autopilot.fleet import (
     AutopilotFleet,
     FleetConfig,
     ServeUntil,
+    SessionError,
     VehicleSummary,
     link_summary,
 )
+from sitl_bridge.autopilot.px4.delivery import wait_delivered
 from sitl_bridge.autopilot.px4.in_air import IN_AIR_LIMITS, InAirLimits
 from sitl_bridge.autopilot.px4.in_air import refusal as in_air_refusal
 from sitl_bridge.autopilot.px4.observer import Px4Observation
@@ -32,6 +34,7 @@ from sitl_bridge.ports import (
     PX4_LAST_OWN_API_INSTANCE,
     PX4_SHARED_API_PORT,
     VehiclePorts,
+    api_bind_port,
     vehicle_ports,
 )
 
@@ -313,9 +316,17 @@ class Px4SitlFleet(AutopilotFleet):
 
     def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]],
                           serve_until: ServeUntil, timeout_s: float) -> None:
-        # PX4 reads its MAVLink socket in wall time even while lockstep holds its clock, so a
-        # short wall wait lets the datagram land.
-        time.sleep(PX4_SETPOINT_DELIVERY_S)  # a delivery wait, not a flight timing
+        # PX4 reads its MAVLink socket in wall time even while lockstep holds its clock: wait
+        # until MAVSDK sent the setpoints and each PX4 read and handled them (delivery.py).
+        receivers = [(autopilot.pid, api_bind_port(autopilot.instance))
+                     for autopilot in self._fleet().autopilots
+                     if autopilot.instance in velocities_ned_m_s and autopilot.pid is not None]
+        try:
+            observed = wait_delivered(receivers, timeout_s)
+        except TimeoutError as exc:
+            raise SessionError(f"velocity setpoints not delivered to PX4: {exc}") from exc
+        if not observed:  # not observable here (not Linux, no named MAVSDK thread): a fixed wait
+            time.sleep(PX4_SETPOINT_DELIVERY_S)  # a delivery wait, not a flight timing
 
     def summary(self, vehicle: int, link: Any) -> VehicleSummary:
         # poll(): the observation only moves when read (it was read once at readiness, so the
