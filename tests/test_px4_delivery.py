@@ -19,8 +19,10 @@ import pytest
 
 from sitl_bridge.autopilot.px4 import delivery
 from sitl_bridge.autopilot.px4.delivery import (
-    MAVSDK_IO_THREAD,
+    MAVSDK_THREAD,
     own_threads,
+    register_sender,
+    sender_threads,
     tag_mavsdk_io_thread,
     thread_syscall,
     threads_named,
@@ -103,7 +105,7 @@ def _stand_ins(
     handle_s: float, send_delay_s: float
 ) -> Iterator[tuple[int, threading.Event, list[int]]]:
     """A receiver thread named like PX4's (reads one datagram, takes `handle_s` to handle it,
-    counts it) and a sender thread named like MAVSDK's I/O thread (waits in epoll, sends
+    counts it) and a sender thread registered as MAVSDK's I/O thread (waits in epoll, sends
     `send_delay_s` after being asked). Yields (receiver port, ask-to-send event, handled)."""
     receiver, sender = _bound_udp(), _bound_udp()
     port = receiver.getsockname()[1]
@@ -123,7 +125,7 @@ def _stand_ins(
                 handled.append(1)
 
     def send() -> None:
-        _name_this_thread(MAVSDK_IO_THREAD)
+        register_sender(threading.get_native_id())
         epoll = select.epoll()
         epoll.register(wake_r, select.EPOLLIN)
         while not stop.is_set():
@@ -142,7 +144,7 @@ def _stand_ins(
         thread.start()
     try:
         _until(lambda: len(threads_named("self", "mavlink_rcv_if", prefix=True)) == 1)
-        _until(lambda: len(threads_named("self", MAVSDK_IO_THREAD)) == 1)
+        _until(lambda: len(sender_threads()) == 1)
         yield port, ask, handled
     finally:
         stop.set()
@@ -174,8 +176,8 @@ def test_wait_delivered_times_out_with_one_line() -> None:
         assert f"UDP {port}" in str(error.value) and "0.3 s" in str(error.value)
 
 
-def test_unobservable_without_a_named_sender() -> None:
-    assert threads_named("self", MAVSDK_IO_THREAD) == []
+def test_unobservable_without_a_registered_sender() -> None:
+    _until(lambda: sender_threads() == [])  # the stand-ins of other tests ended
     assert wait_delivered([(os.getpid(), 9)], timeout_s=1.0) is False
 
 
@@ -187,8 +189,9 @@ def test_tag_names_mavsdks_io_thread() -> None:
     )
     try:
         assert tag_mavsdk_io_thread(before)
-        (tid,) = threads_named("self", MAVSDK_IO_THREAD)
+        (tid,) = sender_threads()
+        assert threads_named("self", MAVSDK_THREAD) == [str(tid)]
         assert thread_syscall("self", tid) in delivery._syscalls("epoll") | {"running"}
     finally:
         instance.destroy()
-    _until(lambda: threads_named("self", MAVSDK_IO_THREAD) == [])
+    _until(lambda: sender_threads() == [])  # forgotten once ended

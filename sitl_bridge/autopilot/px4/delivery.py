@@ -11,18 +11,23 @@ hops can lag under load, and both are observed here:
    `epoll_wait` once the queue is empty, so once every MAVSDK I/O thread of this process is
    seen blocked in `epoll_wait`, everything posted before was handed to the kernel (on
    loopback `sendto` queues the datagram on the receiving socket before it returns). The
-   thread is found by its name, `MAVSDK_IO_THREAD`, which `tag_mavsdk_io_thread` gives it
-   when the client creates its `Mavsdk` (MAVSDK leaves its threads unnamed).
-2. PX4's receiver thread (`mavlink_rcv_if<k>`) reads one datagram per `recvfrom`, handles
-   (publishes) its messages, and only then blocks in `poll` again. So once PX4's API socket
-   holds no unread data (`rx_queue` 0 in /proc/net/udp) and, read after that, every receiver
-   thread of the process is blocked in `poll`, the setpoint was read and published.
+   client registers that thread (`tag_mavsdk_io_thread`, when it creates its `Mavsdk`) by
+   thread id: a name would not do, threads it starts later inherit it.
+2. PX4's receiver threads (`mavlink_rcv_if<k>`) read one datagram per `recvfrom`, handle
+   (publish) its messages, and only then block in `poll` again, which they do not while data
+   is queued: the datagram and the wakeup of its reader were both queued before the send
+   returned. So once every receiver thread of the process is then seen blocked in `poll`,
+   the setpoint was read and published; as a cross-check PX4's API socket must also hold no
+   unread data (`rx_queue` 0 in /proc/net/udp).
 
 Both states are read from /proc/<pid>/task/<tid>/syscall (the number of the system call a
 blocked thread sleeps in; "running" otherwise), which Linux lets a process read for its own
 threads and its children's. Where any of it cannot be read (not Linux, another CPU
-architecture, no tagged MAVSDK thread, no permission) `wait_delivered` says so and the caller
-falls back to a fixed wall wait.
+architecture, no registered MAVSDK thread, no permission) `wait_delivered` says so and the
+caller falls back to a fixed wall wait.
+
+Not covered: a kernel that defers loopback delivery to ksoftirqd (heavy network load) queues
+the datagram after the send returned; the fixed wait had the same blind spot.
 """
 
 from __future__ import annotations
@@ -34,14 +39,16 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
-MAVSDK_IO_THREAD = "mavsdk-io"
-"""Thread name given to MAVSDK's I/O thread (at most 15 characters: Linux's limit)."""
+MAVSDK_THREAD = "mavsdk"
+"""Name given to MAVSDK's I/O thread (for `top -H`; the threads it starts inherit it)."""
 PX4_RECEIVER_PREFIX = "mavlink_rcv_if"
 """PX4's MAVLink receiver threads are named mavlink_rcv_if<k> (mavlink_receiver.cpp)."""
 POLL_S = 0.0002
 """Wall seconds between looks at procfs while waiting."""
 
 _PROC = Path("/proc")
+_senders: set[int] = set()  # thread ids of the MAVSDK I/O threads of this process
+_receivers: dict[int, list[str]] = {}  # PX4 pid -> its receiver threads' ids
 # System call numbers (the first field of /proc/.../syscall) a thread blocks in, per CPU
 # architecture: asio's reactor waits in epoll_wait, PX4's receiver in poll (glibc may use ppoll).
 _SYSCALLS = {
@@ -127,10 +134,25 @@ def own_threads() -> set[str]:
         return set()
 
 
+def register_sender(tid: int) -> None:
+    """Count thread `tid` of this process as a MAVSDK I/O thread (`wait_delivered` waits
+    until it blocks in `epoll_wait`); forgotten once it has ended."""
+    _senders.add(tid)
+
+
+def sender_threads() -> list[int]:
+    """The registered MAVSDK I/O threads still alive."""
+    for tid in list(_senders):
+        if not (_PROC / "self" / "task" / str(tid)).exists():
+            _senders.discard(tid)
+    return sorted(_senders)
+
+
 def tag_mavsdk_io_thread(before: Iterable[str], timeout_s: float = 2.0) -> bool:
-    """Name MAVSDK's I/O thread `MAVSDK_IO_THREAD`: the thread started since `before`
-    (`own_threads()` taken just before creating the `Mavsdk`) that blocks in `epoll_wait`
-    (waiting up to `timeout_s` for it to get there). False where it cannot be found."""
+    """Register MAVSDK's I/O thread (`register_sender`) and name it `MAVSDK_THREAD`: the
+    thread started since `before` (`own_threads()` taken just before creating the `Mavsdk`)
+    that blocks in `epoll_wait` (waiting up to `timeout_s` for it to get there). False where
+    it cannot be found."""
     new = own_threads() - set(before)
     if not new:
         return False
@@ -140,10 +162,12 @@ def tag_mavsdk_io_thread(before: Iterable[str], timeout_s: float = 2.0) -> bool:
         while time.monotonic() < deadline:
             for tid in new:
                 if thread_syscall("self", tid) in epoll:
-                    (_PROC / "self" / "task" / tid / "comm").write_text(MAVSDK_IO_THREAD)
+                    register_sender(int(tid))
+                    with contextlib.suppress(OSError):
+                        (_PROC / "self" / "task" / tid / "comm").write_text(MAVSDK_THREAD)
                     return True
             time.sleep(0.001)
-    except (DeliveryUnobservable, OSError):
+    except DeliveryUnobservable:
         return False
     return False
 
@@ -152,6 +176,17 @@ def _blocked_in(pid: int | str, tid: str, calls: frozenset[str]) -> bool:
     """Thread `tid` is blocked in one of `calls`, or gone."""
     call = thread_syscall(pid, tid)
     return call is None or call in calls
+
+
+def _receiver_threads(pid: int) -> list[str]:
+    """PX4 process `pid`'s MAVLink receiver threads (looked up once per PX4 process: they
+    start at boot, before any setpoint can be sent)."""
+    readers = _receivers.get(pid)
+    if readers is None or not all((_PROC / str(pid) / "task" / tid).exists() for tid in readers):
+        if len(_receivers) > 64:
+            _receivers.clear()  # PX4 processes of long ago
+        readers = _receivers[pid] = threads_named(pid, PX4_RECEIVER_PREFIX, prefix=True)
+    return readers
 
 
 def _wait(done: Callable[[], bool], deadline: float, what: str, timeout_s: float) -> None:
@@ -169,7 +204,7 @@ def wait_delivered(receivers: Sequence[tuple[int, int]], timeout_s: float) -> bo
     deadline = time.monotonic() + timeout_s
     try:
         epoll, poll = _syscalls("epoll"), _syscalls("poll")
-        senders = threads_named("self", MAVSDK_IO_THREAD)
+        senders = sender_threads()
         if not senders:
             return False
         # 1. MAVSDK sent it: every I/O thread back in epoll_wait (or gone: closed client).
@@ -180,17 +215,19 @@ def wait_delivered(receivers: Sequence[tuple[int, int]], timeout_s: float) -> bo
                 "MAVSDK's I/O thread did not go idle (send the setpoints)",
                 timeout_s,
             )
-        # 2. PX4 read it (socket empty), then handled it (every receiver thread back in poll).
+        # 2. PX4 read and handled it: every receiver thread back in poll, its socket empty.
         for pid, port in receivers:
-            readers = threads_named(pid, PX4_RECEIVER_PREFIX, prefix=True)
+            readers = _receiver_threads(pid)
             if not readers:
                 return False
 
             def taken_in(pid: int = pid, port: int = port, readers: list[str] = readers) -> bool:
+                if not all(_blocked_in(pid, tid, poll) for tid in readers):
+                    return False
                 queued = udp_rx_queue(port)
                 if queued is None:
                     raise DeliveryUnobservable(f"no UDP socket on port {port}")
-                return queued == 0 and all(_blocked_in(pid, tid, poll) for tid in readers)
+                return queued == 0
 
             _wait(
                 taken_in,
@@ -204,11 +241,13 @@ def wait_delivered(receivers: Sequence[tuple[int, int]], timeout_s: float) -> bo
 
 
 __all__ = [
-    "MAVSDK_IO_THREAD",
+    "MAVSDK_THREAD",
     "POLL_S",
     "PX4_RECEIVER_PREFIX",
     "DeliveryUnobservable",
     "own_threads",
+    "register_sender",
+    "sender_threads",
     "tag_mavsdk_io_thread",
     "thread_syscall",
     "threads_named",
