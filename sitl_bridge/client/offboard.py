@@ -159,7 +159,7 @@ class OffboardClient:
         self._config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
         threads = own_threads()
         self._mavsdk = Mavsdk(self._config)
-        # named, so a held session can see it go idle after sending (`wait_delivered`)
+        # registered, so a held session can see it go idle after sending (`wait_delivered`)
         tag_mavsdk_io_thread(threads)
         self._mavsdk.add_any_connection_with_handle(self.url)
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"mavsdk-{self.instance}")

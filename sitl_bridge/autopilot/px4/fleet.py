@@ -325,7 +325,7 @@ class Px4SitlFleet(AutopilotFleet):
             observed = wait_delivered(receivers, timeout_s)
         except TimeoutError as exc:
             raise SessionError(f"velocity setpoints not delivered to PX4: {exc}") from exc
-        if not observed:  # not observable here (not Linux, no named MAVSDK thread): a fixed wait
+        if not observed:  # not observable here (not Linux, no registered MAVSDK thread): a fixed wait
             time.sleep(PX4_SETPOINT_DELIVERY_S)  # a delivery wait, not a flight timing
 
     def summary(self, vehicle: int, link: Any) -> VehicleSummary:
