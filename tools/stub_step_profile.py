@@ -61,6 +61,11 @@ TIMED = (
     ("stub: API streams", "stub: API pump", "api", "_send_streams"),
     ("stub: API flush", "stub: API pump", "api", "_flush"),
 )
+# the stub's fused step (`hil_fused.FusedSensorStep.handle`, when the stub has one) calls
+# `prepare` and `_send` itself, without `_step` and `update` around them
+_FUSED_PARENTS = {"stub: prepare": "stub: fused step", "stub: send (syscall)": "stub: fused step"}
+FUSED_TIMED = tuple((name, _FUSED_PARENTS.get(name, parent), path, method) for name, parent, path, method in TIMED) \
+    + (("stub: fused step", "stub: handle bytes", "fused", "handle"),)
 
 
 def _objects(session: SimSession) -> dict[str, Any]:
@@ -70,7 +75,8 @@ def _objects(session: SimSession) -> dict[str, Any]:
     hil = vehicle.hil
     return {"lockstep": lockstep, "sim": lockstep.sim, "suite": lockstep.sensors[0], "link": lockstep.links[0],
             "hil": hil, "parser": hil._parser, "autopilot": vehicle.autopilot,
-            "estimator": vehicle.autopilot.estimator, "commander": vehicle.autopilot.commander, "api": vehicle.api}
+            "estimator": vehicle.autopilot.estimator, "commander": vehicle.autopilot.commander, "api": vehicle.api,
+            "fused": getattr(hil, "_fused", None)}
 
 
 def _timer_cost_ns(clock: Callable[[], int], n: int = 20000) -> tuple[float, float]:
@@ -95,11 +101,12 @@ def _timer_cost_ns(clock: Callable[[], int], n: int = 20000) -> tuple[float, flo
     return (inside - bare) / n, (total - inside) / n
 
 
-def _exclusive_ns(totals: dict[str, int], calls: dict[str, int], cost: tuple[float, float]) -> dict[str, float]:
+def _exclusive_ns(totals: dict[str, int], calls: dict[str, int], cost: tuple[float, float],
+                  timed: tuple[tuple[str, str, str, str], ...] = TIMED) -> dict[str, float]:
     """Own time per component: children subtracted, the timers' own cost taken out."""
     c_in, c_out = cost
     own: dict[str, float] = {name: totals[name] - calls[name] * c_in for name in totals}
-    for name, parent, *_ in TIMED:
+    for name, parent, *_ in timed:
         if parent:
             own[parent] -= totals[name] + calls[name] * c_out
     return own
@@ -131,15 +138,16 @@ def profile(seconds: float, reps: int, cprofile_top: int) -> dict[str, Any]:
             cpu = [_thread_cpu_us(session, seconds) for _ in range(reps)]
             out["thread_cpu_us"] = {"median": statistics.median(cpu), "min": min(cpu), "max": max(cpu)}
             objects = _objects(session)
+            timed = TIMED if objects["fused"] is None else FUSED_TIMED
             steps = session.lockstep.steps_for(seconds)  # type: ignore[union-attr]
             for kind, clock in (("cpu", time.thread_time_ns), ("wall", time.perf_counter_ns)):
                 runs = []
                 cost = _timer_cost_ns(clock)
                 out[f"{kind}_timer_cost_ns"] = cost
                 for _ in range(reps):
-                    with timed_methods(objects, TIMED, clock) as (totals, calls):
+                    with timed_methods(objects, timed, clock) as (totals, calls):
                         session.lockstep.run_for(seconds)  # type: ignore[union-attr]
-                    runs.append(_exclusive_ns(totals, calls, cost))
+                    runs.append(_exclusive_ns(totals, calls, cost, timed))
                 # per component, the median over the runs
                 out[f"{kind}_us_per_step"] = {name: statistics.median(run[name] for run in runs) / steps / 1e3
                                               for name in runs[0]}

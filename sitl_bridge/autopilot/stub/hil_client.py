@@ -32,6 +32,7 @@ from sitl_bridge.ports import HIL_BASE_PORT
 from sitl_bridge.sensors import BaroSample, GpsSample, GroundTruth, SensorFrame
 
 from .estimator import NO_TRUTH
+from .hil_fused import FusedSensorStep
 from .modes import system_id_for
 
 if TYPE_CHECKING:
@@ -110,6 +111,8 @@ class HilClient:
         self._truth: GroundTruth | None = None
         self._truth_origin: tuple[float, float, float] | None = None
         self.last_time_usec = 0
+        # the usual step in two compiled calls (sensor-estimating autopilots; see hil_fused)
+        self._fused = None if self._wants_truth else FusedSensorStep(self)
 
     # --- connection ---------------------------------------------------------------------------
     @property
@@ -230,6 +233,8 @@ class HilClient:
 
     def _handle_bytes(self, data: bytes) -> int:
         parser = self._parser
+        if self._fused is not None and not parser._buffer and self._fused.handle(data):
+            return 1
         parsed = parser.stats
         garbage, bad_crc = parsed.garbage_bytes, parsed.bad_crc
         frames = parser.feed(data)

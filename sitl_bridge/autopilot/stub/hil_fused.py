@@ -1,0 +1,346 @@
+"""The stub's usual simulator step in two compiled calls (`HilClient`'s fast path).
+
+A lockstep step brings one read of whole frames: HIL_SENSOR (primary sensor), with HIL_GPS at
+the GPS rate. For exactly that, `FusedSensorStep.handle` replaces the per-message path (frame
+parser, struct decode, SensorFrame, `StubAutopilot.update`, struct pack, frame encoder) with:
+
+* `sensor_estimate`: check and decode the frames (MAVLink 2 framing and checksum, zero-extended
+  truncated payloads), then the estimator's own compiled `estimator_imu_step`;
+* Python at 50 / 5 Hz: the baro and GPS corrections (`SensorEstimator.finish`), and every
+  step the commander and position loop (`StubAutopilot.prepare`), as the `direct` backend does;
+* `actuator_frame`: the stub's `inner_loop` (attitude, rates, mixer) on the estimator state's
+  attitude and rates (`attitude_and_rates`, as `direct`'s fused loop), then the
+  HIL_ACTUATOR_CONTROLS frame, into a buffer that goes to the socket as it is.
+
+The same components as the per-message path, in the same order: the answers are the same bytes
+(tests/test_stub_hil_fused.py). Anything else (a split or extra frame, garbage, signing, another
+sensor or GPS instance, ground truth, the ground-truth estimator) leaves the state untouched and
+takes the per-message path.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sitl_bridge import frames, mavlink
+from sitl_bridge.jit import dual, kernel
+from sitl_bridge.sensors import BaroSample, GpsSample
+
+from . import control, mixer, vec
+from .autopilot import inner_loop, inner_loop_kernel
+from .estimator import attitude_and_rates, estimator_imu_step
+
+if TYPE_CHECKING:
+    from .hil_client import HilClient
+
+d = mavlink.dialect
+# ids, CRC_EXTRA and full payload lengths of the three messages (literals: compiled in)
+_SENSOR_ID, _SENSOR_CRC, _SENSOR_LEN = 107, 108, 65
+_GPS_ID, _GPS_CRC, _GPS_LEN = 113, 124, 39
+_ACT_ID, _ACT_CRC, _ACT_LEN = 93, 47, 81
+for _cls, (_id, _crc, _len) in (
+    (d.MAVLink_hil_sensor_message, (_SENSOR_ID, _SENSOR_CRC, _SENSOR_LEN)),
+    (d.MAVLink_hil_gps_message, (_GPS_ID, _GPS_CRC, _GPS_LEN)),
+    (d.MAVLink_hil_actuator_controls_message, (_ACT_ID, _ACT_CRC, _ACT_LEN)),
+):
+    if (_cls.id, _cls.crc_extra, _cls.unpacker.size) != (_id, _crc, _len):  # pragma: no cover
+        raise ImportError(f"pymavlink's {_cls.__name__} differs from the compiled-in layout")
+_HEADER = mavlink.MAVLINK2_HEADER_LEN
+_FIELDS_MAG, _FIELDS_BARO = 0x01C0, 0x1A00
+HANDLED, WITH_BARO, WITH_GPS = 1, 2, 4
+SCRATCH_BYTES = 96  # payload scratch (a multiple of 8, >= every payload)
+FRAME_BYTES = _HEADER + _ACT_LEN + 2
+
+
+@dual
+def crc_add(crc: int, byte: int) -> int:
+    """MAVLink's CRC-16/MCRF4XX (`mavlink.crc_mcrf4xx`) advanced by one byte."""
+    tmp = (byte ^ crc) & 0xFF
+    tmp = (tmp ^ (tmp << 4)) & 0xFF
+    return ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+
+
+@dual
+def frame_crc(buf, start: int, end: int, crc_extra: int) -> int:  # noqa: ANN001
+    """The MAVLink checksum of a frame whose header and payload after the magic byte are
+    buf[start:end] (then CRC_EXTRA)."""
+    crc = 0xFFFF
+    for i in range(start, end):
+        crc = crc_add(crc, buf[i])
+    return crc_add(crc, crc_extra)
+
+
+@dual
+def float32_value(bits: int) -> float:
+    """The float32 with these bits, as float64, from the bits (exact). Not a float32 -> float64
+    cast: in a kernel, LLVM may then evaluate expressions of the value in float32 (a sqrt of a
+    sum of squares, say), and the estimator would not be the one `direct` and Python call."""
+    exponent = (bits >> 23) & 0xFF
+    mantissa = bits & 0x7FFFFF
+    if exponent == 0xFF:
+        value = math.inf if mantissa == 0 else math.nan
+    elif exponent == 0:
+        value = math.ldexp(float(mantissa), -149)
+    else:
+        value = math.ldexp(float(mantissa | 0x800000), exponent - 150)
+    return -value if bits >> 31 else value
+
+
+@dual
+def checked_frame(
+    data, pos: int, msgid: int, crc_extra: int, full: int, scratch: np.ndarray
+) -> int:  # noqa: ANN001
+    """The end of the unsigned MAVLink 2 frame `msgid` at `pos` with a good checksum, its payload
+    zero-extended into `scratch`; -1 when there is no such frame."""
+    n = len(data)
+    if n - pos < _HEADER + 2 or data[pos] != 0xFD or data[pos + 2] != 0:
+        return -1
+    length = data[pos + 1]
+    end = pos + _HEADER + length + 2
+    if (
+        end > n
+        or length > full
+        or (data[pos + 7] | (data[pos + 8] << 8) | (data[pos + 9] << 16)) != msgid
+    ):
+        return -1
+    crc = frame_crc(data, pos + 1, pos + _HEADER + length, crc_extra)
+    if crc != data[end - 2] | (data[end - 1] << 8):
+        return -1
+    scratch[:] = 0
+    for i in range(length):
+        scratch[i] = data[pos + _HEADER + i]
+    return end
+
+
+@kernel(frames, vec, estimator_imu_step)
+def sensor_estimate(
+    data: bytes, s: np.ndarray, k: np.ndarray, last_us: int, scratch: np.ndarray, gps: np.ndarray
+) -> tuple:
+    """(status, time_us, dt, baro pressure hPa, `estimator_imu_step`'s values) of one read that is
+    exactly HIL_SENSOR (id 0) [+ HIL_GPS (id 0)]: status HANDLED | WITH_BARO | WITH_GPS (the GPS
+    fields into `gps` in `GpsSample` order), or 0 and nothing changed. `last_us`: the estimator's
+    previous sample, -1 for none."""
+    none = (
+        (1.0, 0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.0),
+        0.0,
+        0.0,
+        0.0,
+        False,
+    )
+    end = checked_frame(data, 0, _SENSOR_ID, _SENSOR_CRC, _SENSOR_LEN, scratch)
+    if end < 0 or scratch[64] != 0:  # not a (primary) HIL_SENSOR
+        return 0, 0, 0.0, 0.0, none
+    u = scratch.view(np.uint32)
+    ax, ay, az = float32_value(u[2]), float32_value(u[3]), float32_value(u[4])
+    gx, gy, gz = float32_value(u[5]), float32_value(u[6]), float32_value(u[7])
+    mx, my, mz, pressure = (
+        float32_value(u[8]),
+        float32_value(u[9]),
+        float32_value(u[10]),
+        float32_value(u[11]),
+    )
+    fields = u[15]
+    time_us = scratch.view(np.int64)[0]
+    status = HANDLED
+    if end < len(data):
+        if (
+            checked_frame(data, end, _GPS_ID, _GPS_CRC, _GPS_LEN, scratch) != len(data)
+            or scratch[36] != 0
+        ):
+            return 0, 0, 0.0, 0.0, none
+        i32, u16, i16 = scratch.view(np.int32), scratch.view(np.uint16), scratch.view(np.int16)
+        gps[0], gps[1], gps[2] = i32[2], i32[3], i32[4]  # lat, lon, alt
+        gps[3], gps[4], gps[5] = u16[10], u16[11], u16[12]  # eph, epv, vel
+        gps[6], gps[7], gps[8] = i16[13], i16[14], i16[15]  # vn, ve, vd
+        gps[9], gps[10], gps[11] = u16[16], scratch[34], scratch[35]  # cog, fix type, satellites
+        status |= WITH_GPS
+    if fields & _FIELDS_BARO == _FIELDS_BARO:
+        status |= WITH_BARO
+    dt = 0.0 if last_us < 0 else (time_us - last_us) * 1e-6
+    values = estimator_imu_step(
+        s, k, ax, ay, az, gx, gy, gz, fields & _FIELDS_MAG == _FIELDS_MAG, mx, my, mz, dt, time_us
+    )
+    return status, time_us, dt, pressure, values
+
+
+@kernel(frames, vec, control, mixer, inner_loop_kernel)
+def actuator_frame(
+    out: np.ndarray,
+    scratch: np.ndarray,
+    sequence: int,
+    system_id: int,
+    component_id: int,
+    time_us: int,
+    fly: bool,
+    armed: bool,
+    ctl: np.ndarray,
+    att_gains: np.ndarray,
+    rate_state: np.ndarray,
+    rate_gains: np.ndarray,
+    mix_constants: np.ndarray,
+    mix_state: np.ndarray,
+    est_state: np.ndarray,
+    yaw_rate_ff: float,
+    dt_s: float,
+    landed: bool,
+) -> int:
+    """With `fly`, the inner loop (`inner_loop`, outputs also into `ctl`);
+    then the HIL_ACTUATOR_CONTROLS frame answering `time_us` into `out` (motors 0 unless flying;
+    armed or disarmed mode; lockstep flag). Returns the frame's length."""
+    scratch[:] = 0
+    f = scratch.view(np.float32)
+    if fly:
+        q, rates = attitude_and_rates(est_state)
+        f[4], f[5], f[6], f[7] = inner_loop(
+            ctl,
+            att_gains,
+            rate_state,
+            rate_gains,
+            mix_constants,
+            mix_state,
+            q,
+            rates,
+            yaw_rate_ff,
+            dt_s,
+            landed,
+        )
+    w = scratch.view(np.int64)
+    w[0], w[1] = time_us, 1  # time, flags: lockstep
+    scratch[_ACT_LEN - 1] = 129 if armed else 1  # custom mode enabled | safety armed
+    length = _ACT_LEN
+    while length > 1 and scratch[length - 1] == 0:  # MAVLink 2 trailing-zero truncation
+        length -= 1
+    out[0], out[1], out[2], out[3], out[4] = 0xFD, length, 0, 0, sequence
+    out[5], out[6], out[7], out[8], out[9] = (
+        system_id,
+        component_id,
+        _ACT_ID & 0xFF,
+        (_ACT_ID >> 8) & 0xFF,
+        _ACT_ID >> 16,
+    )
+    for i in range(length):
+        out[_HEADER + i] = scratch[i]
+    end = _HEADER + length
+    crc = frame_crc(out, 1, end, _ACT_CRC)
+    out[end], out[end + 1] = crc & 0xFF, crc >> 8
+    return end + 2
+
+
+class FusedSensorStep:
+    """`HilClient`'s fast path (module docstring); `handle` answers a read or declines it."""
+
+    def __init__(self, client: HilClient) -> None:
+        self.client = client
+        self._scratch = np.zeros(SCRATCH_BYTES, np.uint8)
+        self._gps = np.zeros(12, np.int64)
+        self._out = np.zeros(FRAME_BYTES, np.uint8)
+        self._view = memoryview(self._out)
+        self.warm_up()
+
+    def warm_up(self) -> None:
+        """Load (or compile) both kernels on scratch state, not at the first step."""
+        ap = self.client.autopilot
+        est = ap.estimator
+        sensor_estimate(b"", est.state.copy(), est.gains, -1, self._scratch, self._gps)
+        actuator_frame(
+            self._out,
+            self._scratch,
+            0,
+            1,
+            1,
+            0,
+            False,
+            False,
+            ap.control.copy(),
+            ap.attitude_control.gains,
+            ap.rate_control.state.copy(),
+            ap.rate_control.gains,
+            ap.mixer.constants,
+            ap.mixer.state.copy(),
+            est.state.copy(),
+            0.0,
+            0.0,
+            False,
+        )
+
+    def handle(self, data: bytes) -> int:
+        """Answer `data` when it is one usual step (1), else 0 with nothing changed."""
+        client = self.client
+        ap = client.autopilot
+        est = ap.estimator
+        last = est.last_time_us
+        status, time_us, dt, pressure_hpa, values = sensor_estimate(
+            data, est.state, est.gains, -1 if last is None else last, self._scratch, self._gps
+        )
+        if not status:
+            return 0
+        est.last_time_us = client.last_time_usec = time_us
+        stats = client.stats
+        stats.sensor_msgs += 1
+        client._parser.stats.frames += 1
+        gps = baro = None
+        if status != HANDLED:
+            if status & WITH_GPS:
+                gps = GpsSample(*self._gps.tolist())
+                stats.gps_msgs += 1
+                client._parser.stats.frames += 1
+            if status & WITH_BARO:
+                baro = BaroSample(pressure_hpa, 0.0, 0.0)  # the estimator reads the pressure only
+        dt_s = ap.prepare(est.finish(values, time_us, dt, gps, baro))
+        encoder = client._encoder
+        sequence = encoder.sequence
+        encoder.sequence = (sequence + 1) & 0xFF
+        if dt_s is None:
+            size = actuator_frame(
+                self._out,
+                self._scratch,
+                sequence,
+                encoder.system_id,
+                encoder.component_id,
+                time_us,
+                False,
+                ap.last_command.armed,
+                ap.control,
+                ap.attitude_control.gains,
+                ap.rate_control.state,
+                ap.rate_control.gains,
+                ap.mixer.constants,
+                ap.mixer.state,
+                est.state,
+                0.0,
+                0.0,
+                False,
+            )
+        else:
+            rate = ap.rate_control
+            size = actuator_frame(
+                self._out,
+                self._scratch,
+                sequence,
+                encoder.system_id,
+                encoder.component_id,
+                time_us,
+                True,
+                True,
+                ap.control,
+                ap.attitude_control.gains,
+                rate.state,
+                rate.gains,
+                ap.mixer.constants,
+                ap.mixer.state,
+                est.state,
+                ap.yaw_rate_ff,
+                dt_s,
+                ap.commander.landed,
+            )
+            ap.outputs_in_control()
+        client._send(self._view[:size])
+        stats.actuator_msgs += 1
+        return 1
