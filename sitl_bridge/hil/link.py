@@ -7,7 +7,9 @@ only when they updated, with their `fields_updated` bits), then HIL_GPS when a G
 due and HIL_STATE_QUATERNION ground truth at the requested interval, all in one TCP write.
 It receives HIL_ACTUATOR_CONTROLS (controls[0..3] = motors 1..4, armed = mode & 128),
 HEARTBEAT and COMMAND_LONG SET_MESSAGE_INTERVAL. Garbage bytes, split frames and bad
-checksums are counted in `stats` and logged at debug level; they never break the link.
+checksums are counted in `stats` and logged at debug level; they never break the link. The
+usual read, one whole HIL_ACTUATOR_CONTROLS, is checked and decoded in one compiled call
+(`mavlink_kernels.actuator_values`); anything else goes through the frame parser.
 
 Simulated time goes on the wire as `time_usec = frame.time_us + offset`: the offset (one
 step at first) keeps wire time strictly increasing when the simulation is reset in place,
@@ -23,12 +25,15 @@ import select
 import socket
 import struct
 import time
-from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from sitl_bridge import mavlink
 from sitl_bridge.hil.admission import Admission
 from sitl_bridge.hil.errors import HilError, LinkClosed, LockstepTimeout
+from sitl_bridge.hil.link_stats import AutopilotHeartbeat, LinkStats
+from sitl_bridge.mavlink_kernels import SCRATCH_BYTES, actuator_values
 from sitl_bridge.physics.simulation import MotorCommand
 from sitl_bridge.physics.state import armed_command
 from sitl_bridge.ports import HIL_BASE_PORT
@@ -96,40 +101,6 @@ def _motor_value(value: float) -> float:
     return 0.0 if value != value or value < 0.0 else 1.0 if value > 1.0 else value
 
 
-@dataclass
-class LinkStats:
-    """Counters of one link (since construction, across reconnections)."""
-
-    connections: int = 0
-    sensor_msgs: int = 0
-    gps_msgs: int = 0
-    state_msgs: int = 0
-    actuator_msgs: int = 0
-    stale_actuator_msgs: int = 0  # answers to an earlier step than the last one sent
-    heartbeats: int = 0
-    commands: int = 0
-    other_msgs: int = 0
-    garbage_bytes: int = 0
-    bad_crc: int = 0
-    timeouts: int = 0
-    bytes_sent: int = 0
-    bytes_received: int = 0
-
-
-@dataclass(frozen=True)
-class AutopilotHeartbeat:
-    """The latest HEARTBEAT the autopilot sent on the simulator link."""
-
-    system_id: int
-    component_id: int
-    autopilot: int
-    base_mode: int
-
-    @property
-    def armed(self) -> bool:
-        return bool(self.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-
-
 class HilLink:
     """Simulator-side TCP server of PX4's simulator protocol for vehicle `instance`.
 
@@ -166,6 +137,8 @@ class HilLink:
         self.stats = LinkStats()
         self.heartbeat: AutopilotHeartbeat | None = None
         self._encoder = mavlink.FrameEncoder(system_id, component_id)
+        self._scratch = np.zeros(SCRATCH_BYTES, np.uint8)
+        actuator_values(b"", self._scratch)  # load (or compile) the kernel now, not in a step
         self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -436,6 +409,12 @@ class HilLink:
 
     def _handle_bytes(self, data: bytes) -> int:
         parser = self._parser
+        if not parser._buffer:  # the usual read, one whole answer: compiled check and decode
+            ok, time_usec, flags, mode, u1, u2, u3, u4 = actuator_values(data, self._scratch)
+            if ok:
+                parser.stats.frames += 1
+                self._actuators(time_usec, flags, mode, u1, u2, u3, u4)
+                return 1
         handled = 0
         for frame in parser.feed(data):
             msgid = frame.msgid
@@ -462,7 +441,9 @@ class HilLink:
 
     def _handle_actuators(self, payload: bytes) -> None:
         values = _ACTUATOR_STRUCT.unpack(payload)
-        time_usec, flags, mode = values[0], values[1], values[18]
+        self._actuators(values[0], values[1], values[18], *values[2:6])
+
+    def _actuators(self, time_usec: int, flags: int, mode: int, u1: float, u2: float, u3: float, u4: float) -> None:
         self.stats.actuator_msgs += 1
         self.actuators_flowing = True
         self.actuator_flags = flags
@@ -472,7 +453,6 @@ class HilLink:
                 return  # older than what we already applied: out of order, drop
         self._last_reply_wire_us = max(self._last_reply_wire_us, time_usec)
         if mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
-            u1, u2, u3, u4 = values[2:6]
             if not (0.0 <= u1 <= 1.0 and 0.0 <= u2 <= 1.0 and 0.0 <= u3 <= 1.0 and 0.0 <= u4 <= 1.0):
                 # out of range or NaN (rare): limit each
                 u1, u2, u3, u4 = _motor_value(u1), _motor_value(u2), _motor_value(u3), _motor_value(u4)

@@ -6,6 +6,9 @@ SensorFrame (units converted back: hPa, gauss, degE7, mm, cm/s) for `StubAutopil
 and is answered with exactly one HIL_ACTUATOR_CONTROLS carrying the same time_usec
 (controls[0..3] = motors 1..4 in [0, 1], all 0 when disarmed; mode 1|128 when armed; flags 1 =
 lockstep). HIL_GPS and HIL_STATE_QUATERNION that arrive with a HIL_SENSOR belong to its step.
+The usual read of a sensor-estimating stub (one HIL_SENSOR [+ HIL_GPS], whole frames) skips
+the frame objects: `hil_fused.FusedSensorStep`, the same components in two compiled calls
+(the same answer, byte for byte); anything else takes the per-message path below.
 
 Two ways to run it:
 - in-process: `pump()` never blocks; the simulator's Lockstep calls it right after sending

@@ -20,13 +20,28 @@ takes the per-message path.
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sitl_bridge import frames, mavlink
-from sitl_bridge.jit import dual, kernel
+from sitl_bridge import frames, mavlink_kernels
+from sitl_bridge.jit import kernel
+from sitl_bridge.mavlink_kernels import (
+    ACT_CRC,
+    ACT_ID,
+    ACT_LEN,
+    GPS_CRC,
+    GPS_ID,
+    GPS_LEN,
+    HEADER,
+    SCRATCH_BYTES,
+    SENSOR_CRC,
+    SENSOR_ID,
+    SENSOR_LEN,
+    checked_frame,
+    float32_value,
+    frame_crc,
+)
 from sitl_bridge.sensors import BaroSample, GpsSample
 
 from . import control, mixer, vec
@@ -36,86 +51,12 @@ from .estimator import attitude_and_rates, estimator_imu_step
 if TYPE_CHECKING:
     from .hil_client import HilClient
 
-d = mavlink.dialect
-# ids, CRC_EXTRA and full payload lengths of the three messages (literals: compiled in)
-_SENSOR_ID, _SENSOR_CRC, _SENSOR_LEN = 107, 108, 65
-_GPS_ID, _GPS_CRC, _GPS_LEN = 113, 124, 39
-_ACT_ID, _ACT_CRC, _ACT_LEN = 93, 47, 81
-for _cls, (_id, _crc, _len) in (
-    (d.MAVLink_hil_sensor_message, (_SENSOR_ID, _SENSOR_CRC, _SENSOR_LEN)),
-    (d.MAVLink_hil_gps_message, (_GPS_ID, _GPS_CRC, _GPS_LEN)),
-    (d.MAVLink_hil_actuator_controls_message, (_ACT_ID, _ACT_CRC, _ACT_LEN)),
-):
-    if (_cls.id, _cls.crc_extra, _cls.unpacker.size) != (_id, _crc, _len):  # pragma: no cover
-        raise ImportError(f"pymavlink's {_cls.__name__} differs from the compiled-in layout")
-_HEADER = mavlink.MAVLINK2_HEADER_LEN
-_FIELDS_MAG, _FIELDS_BARO = 0x01C0, 0x1A00
 HANDLED, WITH_BARO, WITH_GPS = 1, 2, 4
-SCRATCH_BYTES = 96  # payload scratch (a multiple of 8, >= every payload)
-FRAME_BYTES = _HEADER + _ACT_LEN + 2
+_FIELDS_MAG, _FIELDS_BARO = 0x01C0, 0x1A00
+FRAME_BYTES = HEADER + ACT_LEN + 2
 
 
-@dual
-def crc_add(crc: int, byte: int) -> int:
-    """MAVLink's CRC-16/MCRF4XX (`mavlink.crc_mcrf4xx`) advanced by one byte."""
-    tmp = (byte ^ crc) & 0xFF
-    tmp = (tmp ^ (tmp << 4)) & 0xFF
-    return ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
-
-
-@dual
-def frame_crc(buf, start: int, end: int, crc_extra: int) -> int:  # noqa: ANN001
-    """The MAVLink checksum of a frame whose header and payload after the magic byte are
-    buf[start:end] (then CRC_EXTRA)."""
-    crc = 0xFFFF
-    for i in range(start, end):
-        crc = crc_add(crc, buf[i])
-    return crc_add(crc, crc_extra)
-
-
-@dual
-def float32_value(bits: int) -> float:
-    """The float32 with these bits, as float64, from the bits (exact). Not a float32 -> float64
-    cast: in a kernel, LLVM may then evaluate expressions of the value in float32 (a sqrt of a
-    sum of squares, say), and the estimator would not be the one `direct` and Python call."""
-    exponent = (bits >> 23) & 0xFF
-    mantissa = bits & 0x7FFFFF
-    if exponent == 0xFF:
-        value = math.inf if mantissa == 0 else math.nan
-    elif exponent == 0:
-        value = math.ldexp(float(mantissa), -149)
-    else:
-        value = math.ldexp(float(mantissa | 0x800000), exponent - 150)
-    return -value if bits >> 31 else value
-
-
-@dual
-def checked_frame(
-    data, pos: int, msgid: int, crc_extra: int, full: int, scratch: np.ndarray
-) -> int:  # noqa: ANN001
-    """The end of the unsigned MAVLink 2 frame `msgid` at `pos` with a good checksum, its payload
-    zero-extended into `scratch`; -1 when there is no such frame."""
-    n = len(data)
-    if n - pos < _HEADER + 2 or data[pos] != 0xFD or data[pos + 2] != 0:
-        return -1
-    length = data[pos + 1]
-    end = pos + _HEADER + length + 2
-    if (
-        end > n
-        or length > full
-        or (data[pos + 7] | (data[pos + 8] << 8) | (data[pos + 9] << 16)) != msgid
-    ):
-        return -1
-    crc = frame_crc(data, pos + 1, pos + _HEADER + length, crc_extra)
-    if crc != data[end - 2] | (data[end - 1] << 8):
-        return -1
-    scratch[:] = 0
-    for i in range(length):
-        scratch[i] = data[pos + _HEADER + i]
-    return end
-
-
-@kernel(frames, vec, estimator_imu_step)
+@kernel(frames, vec, mavlink_kernels, estimator_imu_step)
 def sensor_estimate(
     data: bytes, s: np.ndarray, k: np.ndarray, last_us: int, scratch: np.ndarray, gps: np.ndarray
 ) -> tuple:
@@ -134,7 +75,7 @@ def sensor_estimate(
         0.0,
         False,
     )
-    end = checked_frame(data, 0, _SENSOR_ID, _SENSOR_CRC, _SENSOR_LEN, scratch)
+    end = checked_frame(data, 0, SENSOR_ID, SENSOR_CRC, SENSOR_LEN, scratch)
     if end < 0 or scratch[64] != 0:  # not a (primary) HIL_SENSOR
         return 0, 0, 0.0, 0.0, none
     u = scratch.view(np.uint32)
@@ -151,7 +92,7 @@ def sensor_estimate(
     status = HANDLED
     if end < len(data):
         if (
-            checked_frame(data, end, _GPS_ID, _GPS_CRC, _GPS_LEN, scratch) != len(data)
+            checked_frame(data, end, GPS_ID, GPS_CRC, GPS_LEN, scratch) != len(data)
             or scratch[36] != 0
         ):
             return 0, 0, 0.0, 0.0, none
@@ -170,7 +111,7 @@ def sensor_estimate(
     return status, time_us, dt, pressure, values
 
 
-@kernel(frames, vec, control, mixer, inner_loop_kernel)
+@kernel(frames, vec, mavlink_kernels, control, mixer, inner_loop_kernel, estimator_imu_step)
 def actuator_frame(
     out: np.ndarray,
     scratch: np.ndarray,
@@ -213,22 +154,22 @@ def actuator_frame(
         )
     w = scratch.view(np.int64)
     w[0], w[1] = time_us, 1  # time, flags: lockstep
-    scratch[_ACT_LEN - 1] = 129 if armed else 1  # custom mode enabled | safety armed
-    length = _ACT_LEN
+    scratch[ACT_LEN - 1] = 129 if armed else 1  # custom mode enabled | safety armed
+    length = ACT_LEN
     while length > 1 and scratch[length - 1] == 0:  # MAVLink 2 trailing-zero truncation
         length -= 1
     out[0], out[1], out[2], out[3], out[4] = 0xFD, length, 0, 0, sequence
     out[5], out[6], out[7], out[8], out[9] = (
         system_id,
         component_id,
-        _ACT_ID & 0xFF,
-        (_ACT_ID >> 8) & 0xFF,
-        _ACT_ID >> 16,
+        ACT_ID & 0xFF,
+        (ACT_ID >> 8) & 0xFF,
+        ACT_ID >> 16,
     )
     for i in range(length):
-        out[_HEADER + i] = scratch[i]
-    end = _HEADER + length
-    crc = frame_crc(out, 1, end, _ACT_CRC)
+        out[HEADER + i] = scratch[i]
+    end = HEADER + length
+    crc = frame_crc(out, 1, end, ACT_CRC)
     out[end], out[end + 1] = crc & 0xFF, crc >> 8
     return end + 2
 
