@@ -91,6 +91,34 @@ def checked_frame(
     return end
 
 
+@dual
+def write_frame(
+    out: np.ndarray,
+    pos: int,
+    payload: np.ndarray,
+    full: int,
+    sequence: int,
+    system_id: int,
+    component_id: int,
+    msgid: int,
+    crc_extra: int,
+) -> int:
+    """Frame payload[:full] as unsigned MAVLink 2 at out[pos:] (trailing zeros truncated, as
+    `mavlink.FrameEncoder.frame`); returns the frame's end."""
+    length = full
+    while length > 1 and payload[length - 1] == 0:
+        length -= 1
+    out[pos], out[pos + 1], out[pos + 2], out[pos + 3], out[pos + 4] = 0xFD, length, 0, 0, sequence
+    out[pos + 5], out[pos + 6] = system_id, component_id
+    out[pos + 7], out[pos + 8], out[pos + 9] = msgid & 0xFF, (msgid >> 8) & 0xFF, msgid >> 16
+    for i in range(length):
+        out[pos + HEADER + i] = payload[i]
+    end = pos + HEADER + length
+    crc = frame_crc(out, pos + 1, end, crc_extra)
+    out[end], out[end + 1] = crc & 0xFF, crc >> 8
+    return end + 2
+
+
 @kernel()
 def actuator_values(data: bytes, scratch: np.ndarray) -> tuple:
     """(1, time_usec, flags, mode, controls 1..4) when `data` is exactly one checked

@@ -15,7 +15,7 @@ from sitl_bridge.hil.link import HilLink
 from sitl_bridge.mavlink_kernels import actuator_values, float32_value, frame_crc
 from sitl_bridge.physics import MotorCommand, Simulation
 from sitl_bridge.physics.state import armed_command
-from sitl_bridge.sensors import SensorSuite
+from sitl_bridge.sensors import BaroSample, SensorSuite
 from sitl_bridge.world.loader import load_world
 
 d = mavlink.dialect
@@ -79,8 +79,9 @@ def test_fused_step_answers_the_same_bytes_from_boot_through_offboard_flight() -
     state at every step (bit for bit), GPS and baro steps included."""
     sim = Simulation(WORLD, seed=3)
     sensors = SensorSuite(WORLD.home, seed=4, step_us=sim.step_us)
-    link = object.__new__(HilLink)
+    link = object.__new__(HilLink)  # its encoding only, no server
     link._encoder = mavlink.FrameEncoder(1, 200)
+    link._scratch, link._out = np.zeros(96, np.uint8), np.zeros(96, np.uint8)
     fused, per_message = client(True), client(False)
     pair = (fused, per_message)
     try:
@@ -186,3 +187,38 @@ def test_simulator_link_decodes_actuator_controls_like_the_frame_parser() -> Non
             frame[:-1] + bytes((frame[-1] ^ 1,)),
         ):
             assert actuator_values(bad, scratch)[0] == 0
+
+
+def test_simulator_link_encodes_hil_sensor_as_the_dialect_decodes_it() -> None:
+    """`sensor_frame` (the link's compiled HIL_SENSOR) read back by the frame parser: float32 of
+    the values clamped into PX4's ranges (NaN -> 0), fields_updated per group, id 0."""
+    link = object.__new__(HilLink)
+    link._encoder = mavlink.FrameEncoder(1, 200)
+    link._scratch, link._out = np.zeros(96, np.uint8), np.zeros(96, np.uint8)
+    rng = np.random.default_rng(3)
+    for i in range(400):
+        imu = [float(x) for x in rng.normal(0.0, 3.0 if i % 5 else 300.0, 6)]
+        if i % 11 == 0:
+            imu[i % 6] = math.nan
+        mag = tuple(float(x) for x in rng.normal(0.0, 0.5 if i % 7 else 40.0, 3)) if i % 2 else None
+        baro = BaroSample(950.0 + i, 15.0 - i, 500.0 * i) if i % 3 == 0 else None
+        frames = mavlink.FrameParser().feed(link._encode_sensor((*imu, mag, baro, None), 4000 * i))
+        assert len(frames) == 1 and frames[0].system_id == 1 and frames[0].component_id == 200
+        got = mavlink.unpack_payload(frames[0])
+        limits = [(-156.0, 156.0)] * 3 + [(-34.9, 34.9)] * 3 + [(-16.0, 16.0)] * 3
+        values = imu + list(mag or (0.0, 0.0, 0.0))
+        want = [
+            0.0 if v != v else min(max(v, lo), hi)
+            for v, (lo, hi) in zip(values, limits, strict=True)
+        ]
+        if baro is not None:
+            want += [
+                min(max(baro.pressure_hpa, 1.0), 1200.0),
+                0.0,
+                min(max(baro.pressure_alt_m, -1000.0), 50000.0),
+                min(max(baro.temperature_c, -60.0), 85.0),
+            ]
+        else:
+            want += [0.0] * 4
+        fields = 0x3F | (0x1C0 if mag else 0) | (0x1A00 if baro else 0)
+        assert got == (4000 * i, *[float(np.float32(w)) for w in want], fields, 0)

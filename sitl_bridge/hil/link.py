@@ -33,6 +33,19 @@ from sitl_bridge import mavlink
 from sitl_bridge.hil.admission import Admission
 from sitl_bridge.hil.errors import HilError, LinkClosed, LockstepTimeout
 from sitl_bridge.hil.link_stats import AutopilotHeartbeat, LinkStats
+from sitl_bridge.hil.sensor_frame import (  # noqa: F401 - the protocol's constants, public here
+    ACCEL_LIMIT_M_S2,
+    FIELDS_ACCEL,
+    FIELDS_BARO,
+    FIELDS_GYRO,
+    FIELDS_IMU,
+    FIELDS_MAG,
+    GYRO_LIMIT_RAD_S,
+    MAG_LIMIT_GAUSS,
+    PRESSURE_RANGE_HPA,
+    TEMPERATURE_RANGE_C,
+    sensor_frame,
+)
 from sitl_bridge.mavlink_kernels import SCRATCH_BYTES, actuator_values
 from sitl_bridge.physics.simulation import MotorCommand
 from sitl_bridge.physics.state import armed_command
@@ -43,22 +56,6 @@ log = logging.getLogger(__name__)
 
 DEFAULT_BASE_PORT = HIL_BASE_PORT
 
-# HIL_SENSOR fields_updated groups: PX4 reads a group only when all its bits are set
-# (SimulatorMavlink.hpp SensorSource).
-FIELDS_ACCEL = 0x0007
-FIELDS_GYRO = 0x0038
-FIELDS_MAG = 0x01C0
-FIELDS_BARO = 0x1A00  # abs_pressure, pressure_alt, temperature
-FIELDS_IMU = FIELDS_ACCEL | FIELDS_GYRO
-
-# PX4 stores simulated accel/gyro id 0 as int16 counts (16 g, 2000 deg/s full scale):
-# anything beyond overflows, so clamp just inside.
-ACCEL_LIMIT_M_S2 = 156.0
-GYRO_LIMIT_RAD_S = 34.9
-MAG_LIMIT_GAUSS = 16.0
-PRESSURE_RANGE_HPA = (1.0, 1200.0)
-TEMPERATURE_RANGE_C = (-60.0, 85.0)
-
 # SET_MESSAGE_INTERVAL param2 meanings (MAVLink common.xml).
 INTERVAL_DISABLED = -1
 INTERVAL_DEFAULT = 0
@@ -68,19 +65,11 @@ _UINT16 = 65535
 
 _DISARMED = MotorCommand.disarmed()
 
-_SENSOR_CLASS = mavlink.dialect.MAVLink_hil_sensor_message
-_SENSOR_STRUCT, _SENSOR_ID, _SENSOR_CRC_EXTRA = _SENSOR_CLASS.unpacker, _SENSOR_CLASS.id, _SENSOR_CLASS.crc_extra
 _GPS_CLASS = mavlink.dialect.MAVLink_hil_gps_message
 _STATE_CLASS = mavlink.dialect.MAVLink_hil_state_quaternion_message
 _HIL_ACTUATOR_CONTROLS = mavlink.HIL_ACTUATOR_CONTROLS
 _ACTUATOR_STRUCT = struct.Struct("<QQ16fB")  # time_usec, flags, controls[16], mode
 _COMMAND_LONG_STRUCT = struct.Struct("<7fHBBB")  # param1..7, command, target sys/comp, confirmation
-
-
-def _clamp(value: float, low: float, high: float) -> float:
-    if value != value:  # NaN: PX4 would propagate it into its estimator
-        return 0.0
-    return low if value < low else high if value > high else value
 
 
 def _clamp_int(value: float, low: int, high: int) -> int:
@@ -138,7 +127,10 @@ class HilLink:
         self.heartbeat: AutopilotHeartbeat | None = None
         self._encoder = mavlink.FrameEncoder(system_id, component_id)
         self._scratch = np.zeros(SCRATCH_BYTES, np.uint8)
-        actuator_values(b"", self._scratch)  # load (or compile) the kernel now, not in a step
+        self._out = np.zeros(SCRATCH_BYTES, np.uint8)
+        # load (or compile) the kernels now, not in a step
+        actuator_values(b"", self._scratch)
+        sensor_frame(self._out, self._scratch, 0, 1, 1, 0, *[0.0] * 6, False, 0.0, 0.0, 0.0, False, 0.0, 0.0, 0.0)
         self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -291,31 +283,18 @@ class HilLink:
 
     def _encode_sensor(self, values: tuple, wire_us: int) -> bytes:
         ax, ay, az, gx, gy, gz, mag, baro, _ = values
-        a, g = ACCEL_LIMIT_M_S2, GYRO_LIMIT_RAD_S
-        if not (-a <= ax <= a and -a <= ay <= a and -a <= az <= a
-                and -g <= gx <= g and -g <= gy <= g and -g <= gz <= g):
-            # rare (a crash, NaN): clamp each value; in range (every normal step) skip the calls
-            ax, ay, az = _clamp(ax, -a, a), _clamp(ay, -a, a), _clamp(az, -a, a)
-            gx, gy, gz = _clamp(gx, -g, g), _clamp(gy, -g, g), _clamp(gz, -g, g)
-        fields = FIELDS_IMU
-        mx = my = mz = 0.0
-        pressure_hpa = pressure_alt_m = temperature_c = 0.0
-        if mag is not None:
-            mx, my, mz = mag
-            m = MAG_LIMIT_GAUSS
-            mx, my, mz = _clamp(mx, -m, m), _clamp(my, -m, m), _clamp(mz, -m, m)
-            fields |= FIELDS_MAG
-        if baro is not None:
-            pressure_hpa = _clamp(float(baro.pressure_hpa), *PRESSURE_RANGE_HPA)
-            temperature_c = _clamp(float(baro.temperature_c), *TEMPERATURE_RANGE_C)
-            pressure_alt_m = _clamp(float(baro.pressure_alt_m), -1000.0, 50000.0)
-            fields |= FIELDS_BARO
-        return self._encoder.frame(_SENSOR_ID, _SENSOR_CRC_EXTRA, _SENSOR_STRUCT.pack(
-            wire_us, ax, ay, az, gx, gy, gz, mx, my, mz,
-            pressure_hpa, 0.0, pressure_alt_m, temperature_c,
-            fields,
-            0,  # id 0: the primary sensor, which drives PX4's clock
-        ))
+        encoder = self._encoder
+        sequence = encoder.sequence
+        encoder.sequence = (sequence + 1) & 0xFF
+        mx, my, mz = (0.0, 0.0, 0.0) if mag is None else mag
+        if baro is None:
+            size = sensor_frame(self._out, self._scratch, sequence, encoder.system_id, encoder.component_id, wire_us,
+                                ax, ay, az, gx, gy, gz, mag is not None, mx, my, mz, False, 0.0, 0.0, 0.0)
+        else:
+            size = sensor_frame(self._out, self._scratch, sequence, encoder.system_id, encoder.component_id, wire_us,
+                                ax, ay, az, gx, gy, gz, mag is not None, mx, my, mz, True, float(baro.pressure_hpa),
+                                float(baro.temperature_c), float(baro.pressure_alt_m))
+        return self._out[:size].tobytes()
 
     def _encode_gps(self, gps: Any, wire_us: int) -> bytes:
         return self._encoder.pack(

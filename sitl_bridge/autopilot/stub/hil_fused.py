@@ -40,7 +40,7 @@ from sitl_bridge.mavlink_kernels import (
     SENSOR_LEN,
     checked_frame,
     float32_value,
-    frame_crc,
+    write_frame,
 )
 from sitl_bridge.sensors import BaroSample, GpsSample
 
@@ -155,23 +155,7 @@ def actuator_frame(
     w = scratch.view(np.int64)
     w[0], w[1] = time_us, 1  # time, flags: lockstep
     scratch[ACT_LEN - 1] = 129 if armed else 1  # custom mode enabled | safety armed
-    length = ACT_LEN
-    while length > 1 and scratch[length - 1] == 0:  # MAVLink 2 trailing-zero truncation
-        length -= 1
-    out[0], out[1], out[2], out[3], out[4] = 0xFD, length, 0, 0, sequence
-    out[5], out[6], out[7], out[8], out[9] = (
-        system_id,
-        component_id,
-        ACT_ID & 0xFF,
-        (ACT_ID >> 8) & 0xFF,
-        ACT_ID >> 16,
-    )
-    for i in range(length):
-        out[HEADER + i] = scratch[i]
-    end = HEADER + length
-    crc = frame_crc(out, 1, end, ACT_CRC)
-    out[end], out[end + 1] = crc & 0xFF, crc >> 8
-    return end + 2
+    return write_frame(out, 0, scratch, ACT_LEN, sequence, system_id, component_id, ACT_ID, ACT_CRC)
 
 
 class FusedSensorStep:
