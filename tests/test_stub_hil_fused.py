@@ -74,9 +74,10 @@ def test_frame_crc_is_mavlinks_checksum() -> None:
 
 
 def test_fused_step_answers_the_same_bytes_from_boot_through_offboard_flight() -> None:
-    """Cold boot, alignment, arming, takeoff, OFFBOARD velocity: the fused and per-message
-    clients, fed the same simulator bytes, send the same frames and keep the same estimator
-    state at every step (bit for bit), GPS and baro steps included."""
+    """Cold boot, alignment, arming, takeoff, OFFBOARD velocity, a reboot in place (new controller
+    vectors), takeoff again: the fused and per-message clients, fed the same simulator bytes,
+    send the same frames and keep the same estimator state at every step (bit for bit), GPS
+    and baro steps included."""
     sim = Simulation(WORLD, seed=3)
     sensors = SensorSuite(WORLD.home, seed=4, step_us=sim.step_us)
     link = object.__new__(HilLink)  # its encoding only, no server
@@ -85,12 +86,16 @@ def test_fused_step_answers_the_same_bytes_from_boot_through_offboard_flight() -
     fused, per_message = client(True), client(False)
     pair = (fused, per_message)
     try:
-        for i in range(1900):
-            if i == 900:
+        for i in range(2500):
+            if i == 1900:  # flew; then a reboot in place (new controller vectors) and again
+                assert sim.state(0).position_ned_m[2] < -1.0
+                for c in pair:
+                    c.autopilot.reset()
+            if i in (900, 2200):
                 for c in pair:
                     assert c.autopilot.arm() is CommandResult.ACCEPTED
                     assert c.autopilot.takeoff() is CommandResult.ACCEPTED
-            if i >= 1400 and i % 10 == 0:
+            if 1400 <= i < 1900 and i % 10 == 0:
                 for c in pair:
                     c.autopilot.set_velocity_setpoint_ned((1.0, -0.5, -0.2))
                     if i == 1400:
@@ -107,7 +112,7 @@ def test_fused_step_answers_the_same_bytes_from_boot_through_offboard_flight() -
         assert fused.autopilot.last_command == per_message.autopilot.last_command
         assert fused.stats == per_message.stats
         assert fused._parser.stats == per_message._parser.stats
-        assert fused.stats.gps_msgs > 0 and sim.state(0).position_ned_m[2] < -1.0  # flew
+        assert fused.stats.gps_msgs > 0 and sim.state(0).position_ned_m[2] < -0.5  # took off again
     finally:
         sim.close()
 

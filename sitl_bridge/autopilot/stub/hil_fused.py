@@ -49,6 +49,7 @@ from .autopilot import inner_loop, inner_loop_kernel
 from .estimator import attitude_and_rates, estimator_imu_step
 
 if TYPE_CHECKING:
+    from .autopilot import StubAutopilot
     from .hil_client import HilClient
 
 HANDLED, WITH_BARO, WITH_GPS = 1, 2, 4
@@ -167,6 +168,9 @@ class FusedSensorStep:
         self._gps = np.zeros(12, np.int64)
         self._out = np.zeros(FRAME_BYTES, np.uint8)
         self._view = memoryview(self._out)
+        self._ids = (client._encoder.system_id, client._encoder.component_id)
+        self._rate = self._attitude = None
+        self._vectors: tuple = ()
         self.warm_up()
 
     def warm_up(self) -> None:
@@ -195,6 +199,21 @@ class FusedSensorStep:
             False,
         )
 
+    def _operands(self, ap: StubAutopilot) -> tuple:
+        """`actuator_frame`'s state and gain vectors (new ones after `StubAutopilot.reset`)."""
+        if ap.rate_control is not self._rate or ap.attitude_control is not self._attitude:
+            self._rate, self._attitude = rate, attitude = ap.rate_control, ap.attitude_control
+            self._vectors = (
+                ap.control,
+                attitude.gains,
+                rate.state,
+                rate.gains,
+                ap.mixer.constants,
+                ap.mixer.state,
+                ap.estimator.state,
+            )
+        return self._vectors
+
     def handle(self, data: bytes) -> int:
         """Answer `data` when it is one usual step (1), else 0 with nothing changed."""
         client = self.client
@@ -222,45 +241,31 @@ class FusedSensorStep:
         encoder = client._encoder
         sequence = encoder.sequence
         encoder.sequence = (sequence + 1) & 0xFF
-        if dt_s is None:
+        ids = self._ids
+        if dt_s is None:  # motors off or idle
             size = actuator_frame(
                 self._out,
                 self._scratch,
                 sequence,
-                encoder.system_id,
-                encoder.component_id,
+                *ids,
                 time_us,
                 False,
                 ap.last_command.armed,
-                ap.control,
-                ap.attitude_control.gains,
-                ap.rate_control.state,
-                ap.rate_control.gains,
-                ap.mixer.constants,
-                ap.mixer.state,
-                est.state,
+                *self._operands(ap),
                 0.0,
                 0.0,
                 False,
             )
         else:
-            rate = ap.rate_control
             size = actuator_frame(
                 self._out,
                 self._scratch,
                 sequence,
-                encoder.system_id,
-                encoder.component_id,
+                *ids,
                 time_us,
                 True,
                 True,
-                ap.control,
-                ap.attitude_control.gains,
-                rate.state,
-                rate.gains,
-                ap.mixer.constants,
-                ap.mixer.state,
-                est.state,
+                *self._operands(ap),
                 ap.yaw_rate_ff,
                 dt_s,
                 ap.commander.landed,
