@@ -27,6 +27,13 @@ for _cls, (_id, _crc, _len) in (
 ):
     if (_cls.id, _cls.crc_extra, _cls.unpacker.size) != (_id, _crc, _len):  # pragma: no cover
         raise ImportError(f"pymavlink's {_cls.__name__} differs from the compiled-in layout")
+# HIL_SENSOR fields_updated groups: PX4 reads a group only when all its bits are set
+# (SimulatorMavlink.hpp SensorSource).
+FIELDS_ACCEL = 0x0007
+FIELDS_GYRO = 0x0038
+FIELDS_MAG = 0x01C0
+FIELDS_BARO = 0x1A00  # abs_pressure, pressure_alt, temperature
+FIELDS_IMU = FIELDS_ACCEL | FIELDS_GYRO
 HEADER = mavlink.MAVLINK2_HEADER_LEN
 SCRATCH_BYTES = 96  # payload scratch (a multiple of 8, >= every payload)
 

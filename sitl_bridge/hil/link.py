@@ -33,19 +33,7 @@ from sitl_bridge import mavlink
 from sitl_bridge.hil.admission import Admission
 from sitl_bridge.hil.errors import HilError, LinkClosed, LockstepTimeout
 from sitl_bridge.hil.link_stats import AutopilotHeartbeat, LinkStats
-from sitl_bridge.hil.sensor_frame import (  # noqa: F401 - the protocol's constants, public here
-    ACCEL_LIMIT_M_S2,
-    FIELDS_ACCEL,
-    FIELDS_BARO,
-    FIELDS_GYRO,
-    FIELDS_IMU,
-    FIELDS_MAG,
-    GYRO_LIMIT_RAD_S,
-    MAG_LIMIT_GAUSS,
-    PRESSURE_RANGE_HPA,
-    TEMPERATURE_RANGE_C,
-    sensor_frame,
-)
+from sitl_bridge.hil.sensor_frame import sensor_frame
 from sitl_bridge.mavlink_kernels import SCRATCH_BYTES, actuator_values
 from sitl_bridge.physics.simulation import MotorCommand
 from sitl_bridge.physics.state import armed_command

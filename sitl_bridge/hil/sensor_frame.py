@@ -1,8 +1,9 @@
 """HIL_SENSOR as the simulator's link sends it, framed in one compiled call.
 
-The values PX4 can take (`fields_updated` groups, the int16 ranges PX4 stores accel and gyro
-in) and `sensor_frame`, the kernel that clamps a step's IMU / magnetometer / baro values into
-them and frames the message (MAVLink 2, `mavlink_kernels.write_frame`) into the link's buffer.
+The ranges PX4 can take (accel and gyro: the sensor suite's limits of PX4's int16 storage;
+magnetometer, baro) and `sensor_frame`, the kernel that clamps a step's IMU / magnetometer /
+baro values into them, sets the `fields_updated` groups (`mavlink_kernels.FIELDS_*`) and frames
+the message (MAVLink 2, `mavlink_kernels.write_frame`) into the link's buffer.
 """
 
 from __future__ import annotations
@@ -11,20 +12,18 @@ import numpy as np
 
 from sitl_bridge import mavlink_kernels
 from sitl_bridge.jit import dual, kernel
-from sitl_bridge.mavlink_kernels import SENSOR_CRC, SENSOR_ID, SENSOR_LEN, write_frame
+from sitl_bridge.mavlink_kernels import (
+    FIELDS_BARO,
+    FIELDS_IMU,
+    FIELDS_MAG,
+    SENSOR_CRC,
+    SENSOR_ID,
+    SENSOR_LEN,
+    write_frame,
+)
+from sitl_bridge.sensors import suite
+from sitl_bridge.sensors.suite import ACCEL_LIMIT_M_S2, GYRO_LIMIT_RAD_S  # PX4's int16 ranges
 
-# HIL_SENSOR fields_updated groups: PX4 reads a group only when all its bits are set
-# (SimulatorMavlink.hpp SensorSource).
-FIELDS_ACCEL = 0x0007
-FIELDS_GYRO = 0x0038
-FIELDS_MAG = 0x01C0
-FIELDS_BARO = 0x1A00  # abs_pressure, pressure_alt, temperature
-FIELDS_IMU = FIELDS_ACCEL | FIELDS_GYRO
-
-# PX4 stores simulated accel/gyro id 0 as int16 counts (16 g, 2000 deg/s full scale):
-# anything beyond overflows, so clamp just inside.
-ACCEL_LIMIT_M_S2 = 156.0
-GYRO_LIMIT_RAD_S = 34.9
 MAG_LIMIT_GAUSS = 16.0
 PRESSURE_RANGE_HPA = (1.0, 1200.0)
 TEMPERATURE_RANGE_C = (-60.0, 85.0)
@@ -39,7 +38,7 @@ def clamp(value: float, low: float, high: float) -> float:
     return low if value < low else high if value > high else value
 
 
-@kernel(mavlink_kernels)
+@kernel(mavlink_kernels, suite)
 def sensor_frame(
     out: np.ndarray,
     scratch: np.ndarray,

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from sitl_bridge import mavlink
+from sitl_bridge.mavlink_kernels import FIELDS_BARO, FIELDS_MAG
 from sitl_bridge.ports import HIL_BASE_PORT
 from sitl_bridge.sensors import BaroSample, GpsSample, GroundTruth, SensorFrame
 
@@ -51,8 +52,6 @@ d = mavlink.dialect
 PX4_STATE_INTERVAL_US = 5000
 EVERY_STEP_INTERVAL_US = 1000
 NO_STATE_INTERVAL_US = -1
-_FIELDS_MAG = 0x01C0
-_FIELDS_BARO = 0x1A00
 _LOCKSTEP_FLAG = 1
 _MODE_ARMED = d.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | d.MAV_MODE_FLAG_SAFETY_ARMED
 _MODE_DISARMED = d.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
@@ -289,9 +288,9 @@ class HilClient:
             return None  # only the primary sensor drives the clock (PX4 lockstep)
         self.stats.sensor_msgs += 1
         self.last_time_usec = time_usec
-        mag = (mx, my, mz) if fields & _FIELDS_MAG == _FIELDS_MAG else None
+        mag = (mx, my, mz) if fields & FIELDS_MAG == FIELDS_MAG else None
         baro = BaroSample(abs_pressure_hpa, temperature_c, pressure_alt_m) \
-            if fields & _FIELDS_BARO == _FIELDS_BARO else None
+            if fields & FIELDS_BARO == FIELDS_BARO else None
         truth = self._truth if self._truth is not None else NO_TRUTH
         # plain tuples, not numpy arrays: this frame only feeds the stub's estimator, which
         # reads the values back as floats (an array costs more to build than to use here)

@@ -30,6 +30,8 @@ from sitl_bridge.mavlink_kernels import (
     ACT_CRC,
     ACT_ID,
     ACT_LEN,
+    FIELDS_BARO,
+    FIELDS_MAG,
     GPS_CRC,
     GPS_ID,
     GPS_LEN,
@@ -53,7 +55,6 @@ if TYPE_CHECKING:
     from .hil_client import HilClient
 
 HANDLED, WITH_BARO, WITH_GPS = 1, 2, 4
-_FIELDS_MAG, _FIELDS_BARO = 0x01C0, 0x1A00
 FRAME_BYTES = HEADER + ACT_LEN + 2
 
 
@@ -103,11 +104,11 @@ def sensor_estimate(
         gps[6], gps[7], gps[8] = i16[13], i16[14], i16[15]  # vn, ve, vd
         gps[9], gps[10], gps[11] = u16[16], scratch[34], scratch[35]  # cog, fix type, satellites
         status |= WITH_GPS
-    if fields & _FIELDS_BARO == _FIELDS_BARO:
+    if fields & FIELDS_BARO == FIELDS_BARO:
         status |= WITH_BARO
     dt = 0.0 if last_us < 0 else (time_us - last_us) * 1e-6
     values = estimator_imu_step(
-        s, k, ax, ay, az, gx, gy, gz, fields & _FIELDS_MAG == _FIELDS_MAG, mx, my, mz, dt, time_us
+        s, k, ax, ay, az, gx, gy, gz, fields & FIELDS_MAG == FIELDS_MAG, mx, my, mz, dt, time_us
     )
     return status, time_us, dt, pressure, values
 
