@@ -168,6 +168,12 @@ class FrameParser:
         self._buffer = bytearray()
         self.stats = ParserStats()
 
+    @property
+    def holds_partial(self) -> bool:
+        """Bytes of an incomplete frame are waiting for the next `feed` (a new read does not
+        start on a frame boundary)."""
+        return bool(self._buffer)
+
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the complete frames now available, in order."""
         buf = self._buffer

@@ -376,7 +376,7 @@ class HilLink:
 
     def _handle_bytes(self, data: bytes) -> int:
         parser = self._parser
-        if not parser._buffer:  # the usual read, one whole answer: compiled check and decode
+        if not parser.holds_partial:  # the usual read, one whole answer: compiled check and decode
             ok, time_usec, flags, mode, u1, u2, u3, u4 = actuator_values(data, self._scratch)
             if ok:
                 parser.stats.frames += 1

@@ -235,7 +235,7 @@ class HilClient:
 
     def _handle_bytes(self, data: bytes) -> int:
         parser = self._parser
-        if self._fused is not None and not parser._buffer and self._fused.handle(data):
+        if self._fused is not None and not parser.holds_partial and self._fused.handle(data):
             return 1
         parsed = parser.stats
         garbage, bad_crc = parsed.garbage_bytes, parsed.bad_crc
