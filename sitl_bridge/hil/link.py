@@ -275,13 +275,11 @@ class HilLink:
         sequence = encoder.sequence
         encoder.sequence = (sequence + 1) & 0xFF
         mx, my, mz = (0.0, 0.0, 0.0) if mag is None else mag
-        if baro is None:
-            size = sensor_frame(self._out, self._scratch, sequence, encoder.system_id, encoder.component_id, wire_us,
-                                ax, ay, az, gx, gy, gz, mag is not None, mx, my, mz, False, 0.0, 0.0, 0.0)
-        else:
-            size = sensor_frame(self._out, self._scratch, sequence, encoder.system_id, encoder.component_id, wire_us,
-                                ax, ay, az, gx, gy, gz, mag is not None, mx, my, mz, True, float(baro.pressure_hpa),
-                                float(baro.temperature_c), float(baro.pressure_alt_m))
+        hpa, celsius, alt_m = (0.0, 0.0, 0.0) if baro is None else (
+            float(baro.pressure_hpa), float(baro.temperature_c), float(baro.pressure_alt_m))
+        size = sensor_frame(self._out, self._scratch, sequence, encoder.system_id, encoder.component_id, wire_us,
+                            ax, ay, az, gx, gy, gz, mag is not None, mx, my, mz,
+                            baro is not None, hpa, celsius, alt_m)
         return self._out[:size].tobytes()
 
     def _encode_gps(self, gps: Any, wire_us: int) -> bytes:
