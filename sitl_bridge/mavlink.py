@@ -104,12 +104,18 @@ class FrameEncoder:
         """One complete MAVLink 2 frame carrying `wire_values`."""
         return self.frame(message_class.id, message_class.crc_extra, message_class.unpacker.pack(*wire_values))
 
+    def take_sequence(self) -> int:
+        """The sequence number of the next frame, counted as sent (frames built elsewhere, e.g.
+        in a compiled kernel, take theirs here so the counter stays one per link)."""
+        sequence = self.sequence
+        self.sequence = (sequence + 1) & 0xFF
+        return sequence
+
     def frame(self, msgid: int, crc_extra: int, payload: bytes) -> bytes:
         """Frame an already packed payload (trailing zero bytes are truncated, as MAVLink 2
         senders do; receivers zero-extend)."""
         payload = payload.rstrip(b"\0") or b"\0"
-        sequence = self.sequence
-        self.sequence = (sequence + 1) & 0xFF
+        sequence = self.take_sequence()
         # everything after the magic byte, which is what the checksum covers (then CRC_EXTRA)
         body = _HEADER2_AFTER_MAGIC.pack(len(payload), 0, 0, sequence, self.system_id, self.component_id,
                                          msgid & 0xFFFF, msgid >> 16) + payload

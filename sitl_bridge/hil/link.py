@@ -272,8 +272,7 @@ class HilLink:
     def _encode_sensor(self, values: tuple, wire_us: int) -> bytes:
         ax, ay, az, gx, gy, gz, mag, baro, _ = values
         encoder = self._encoder
-        sequence = encoder.sequence
-        encoder.sequence = (sequence + 1) & 0xFF
+        sequence = encoder.take_sequence()
         mx, my, mz = (0.0, 0.0, 0.0) if mag is None else mag
         hpa, celsius, alt_m = (0.0, 0.0, 0.0) if baro is None else (
             float(baro.pressure_hpa), float(baro.temperature_c), float(baro.pressure_alt_m))

@@ -239,38 +239,22 @@ class FusedSensorStep:
             if status & WITH_BARO:
                 baro = BaroSample(pressure_hpa, 0.0, 0.0)  # the estimator reads the pressure only
         dt_s = ap.prepare(est.finish(values, time_us, dt, gps, baro))
-        encoder = client._encoder
-        sequence = encoder.sequence
-        encoder.sequence = (sequence + 1) & 0xFF
-        ids = self._ids
-        if dt_s is None:  # motors off or idle
-            size = actuator_frame(
-                self._out,
-                self._scratch,
-                sequence,
-                *ids,
-                time_us,
-                False,
-                ap.last_command.armed,
-                *self._operands(ap),
-                0.0,
-                0.0,
-                False,
-            )
-        else:
-            size = actuator_frame(
-                self._out,
-                self._scratch,
-                sequence,
-                *ids,
-                time_us,
-                True,
-                True,
-                *self._operands(ap),
-                ap.yaw_rate_ff,
-                dt_s,
-                ap.commander.landed,
-            )
+        sequence = client._encoder.take_sequence()
+        flying = dt_s is not None  # else motors off or idle
+        size = actuator_frame(
+            self._out,
+            self._scratch,
+            sequence,
+            *self._ids,
+            time_us,
+            flying,
+            True if flying else ap.last_command.armed,
+            *self._operands(ap),
+            ap.yaw_rate_ff if flying else 0.0,
+            dt_s if flying else 0.0,
+            ap.commander.landed if flying else False,
+        )
+        if flying:
             ap.outputs_in_control()
         client._send(self._view[:size])
         stats.actuator_msgs += 1
