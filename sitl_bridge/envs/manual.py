@@ -66,7 +66,14 @@ def describe(scenario: Scenario) -> str:
         lines += ["", "## Priority", f"Rule `{task.priority}` (sitl_bridge/envs/priority.py): "
                   "1 = right of way, 0 = yields."]
     lines += ["", "## Episode end",
-              f"Terminated: {'; '.join(ends)}. Truncated: after {task.max_steps} steps.", ""]
+              f"Terminated: {'; '.join(ends)}. Truncated: after {task.max_steps} steps."]
+    if world.num_vehicles > 1:
+        after = "lands if it is at its goal, else hovers" if end.after_goal == "land" else "hovers"
+        blame = ("the drones without right of way (one with right of way over all in it stops, truncated "
+                 "and uncharged)" if end.conflict_blame == "give_way" else "every drone in it")
+        lines.append(f"A drone whose episode ended {after} while the others fly on. A crash between "
+                     f"drones (centres within {end.conflict_m:g} m) is charged to {blame}.")
+    lines.append("")
     return "\n".join(lines)
 
 

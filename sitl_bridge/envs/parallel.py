@@ -33,7 +33,8 @@ class SitlParallelEnv(ParallelEnv):
     while the agents decide.
 
     An agent whose episode ends (goal, crash, out of the workspace, step limit) leaves
-    `env.agents`; its drone hovers where it is for the rest of the episode. The episode is over
+    `env.agents`; its drone hovers where it is for the rest of the episode (or lands, at its goal,
+    under the scenario's `end.after_goal: land`). The episode is over
     when `env.agents` is empty. Head-on crashes end the episode for both drones.
 
     ## Arguments

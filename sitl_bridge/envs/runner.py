@@ -64,6 +64,7 @@ class EpisodeRunner:
         self.step_count = 0
         self.done = [False] * self.num_drones
         self.outcomes: list[str | None] = [None] * self.num_drones
+        self._ended_truncated = [False] * self.num_drones
         self._snapshot: Snapshot | None = None
         self._starts: list[np.ndarray] = []
         self._goals: list[np.ndarray] = []
@@ -95,6 +96,7 @@ class EpisodeRunner:
         self.step_count = 0
         self.done = [False] * self.num_drones
         self.outcomes = [None] * self.num_drones
+        self._ended_truncated = [False] * self.num_drones
         self._starts = [np.array(s.position_enu_m, dtype=float) for s in snapshot.states]
         self._goals = [np.array(g.center_m, dtype=float) for g in snapshot.goals]
         results = []
@@ -112,8 +114,9 @@ class EpisodeRunner:
         before = self._snapshot
         config = self.scenario.task.action
         velocities = []
+        flying = [not done for done in self.done]
         for i in range(self.num_drones):
-            code = int(actions.get(i, Action.HOVER)) if not self.done[i] else int(Action.HOVER)
+            code = int(actions.get(i, Action.HOVER)) if flying[i] else self._after_end(i)
             velocities.append(action_velocity(
                 code, config=config, drone=i,
                 position_enu_m=np.asarray(before.states[i].position_enu_m, dtype=float),
@@ -125,16 +128,20 @@ class EpisodeRunner:
             collided = [a or b for a, b in zip(collided, snapshot.collided, strict=True)]
         self._snapshot = snapshot
         self.step_count += 1
+        crashed, by_drones_only = self._crashes(snapshot, collided)
+        if self.scenario.task.end.conflict_blame == "give_way":
+            crashed = self._charge_give_way(snapshot, crashed, by_drones_only, flying)
 
         results = []
         for i in range(self.num_drones):
             if self.done[i]:
                 view = self._view(i, snapshot, before.states[i].position_enu_m, crashed=False)
-                timeout = self.outcomes[i] == "timeout"
-                results.append(DroneResult(self._observe(view), 0.0, not timeout, timeout,
+                truncated = self._ended_truncated[i]
+                results.append(DroneResult(self._observe(view), 0.0, not truncated, truncated,
                                            self._info(view, self.outcomes[i], {}, None)))
                 continue
-            results.append(self._score(i, snapshot, before, collided[i], actions.get(i)))
+            results.append(self._score(i, snapshot, before, actions.get(i), crashed=crashed[i],
+                                       by_drones_only=by_drones_only[i], flying=flying))
         self._last = results
         return results
 
@@ -146,10 +153,60 @@ class EpisodeRunner:
         return self._last
 
     # -- pieces -------------------------------------------------------------------------
-    def _score(self, i: int, snapshot: Snapshot, before: Snapshot, collided: bool,
-               action: int | None) -> DroneResult:
+    def _after_end(self, i: int) -> int:
+        """The action a drone whose episode has ended flies: down at its goal under
+        `end.after_goal: land`, else hover."""
+        if self.outcomes[i] == "goal" and self.scenario.task.end.after_goal == "land":
+            return int(Action.DOWN)
+        return int(Action.HOVER)
+
+    def _crashes(self, snapshot: Snapshot, collided: list[bool]) -> tuple[list[bool], list[bool]]:
+        """Per drone: whether it crashed (a collision, or the lidar's crash flag under
+        `crash_on_lidar`), and whether only other drones caused it (no obstacle or ground)."""
+        lidar = self.scenario.task.end.crash_on_lidar
+        hit_obstacle = snapshot.hit_obstacle if snapshot.hit_obstacle is not None else collided
+        crashed, by_drones_only = [], []
+        for c, obstacle, scan in zip(collided, hit_obstacle, snapshot.scans, strict=True):
+            crashed.append(c or (lidar and bool(scan.crash)))
+            by_drones_only.append(crashed[-1] and not obstacle and not (lidar and scan.crash and not scan.crash_by_vehicles))
+        return crashed, by_drones_only
+
+    def _conflict_partners(self, i: int, positions: list[np.ndarray], flying: list[bool]) -> list[int]:
+        """The other flying drones within `end.conflict_m` of drone `i`."""
+        reach = self.scenario.task.end.conflict_m
+        return [j for j in range(self.num_drones)
+                if j != i and flying[j] and float(np.linalg.norm(positions[j] - positions[i])) < reach]
+
+    def _ranks(self, snapshot: Snapshot) -> tuple[list[np.ndarray], np.ndarray]:
+        """Every drone's position and priority (`task.priority`) in `snapshot`."""
+        positions = [np.asarray(s.position_enu_m, dtype=float) for s in snapshot.states]
+        return positions, priorities(self.scenario.task.priority, self._starts, positions, self._goals)
+
+    def _charge_give_way(self, snapshot: Snapshot, crashed: list[bool], by_drones_only: list[bool],
+                         flying: list[bool]) -> list[bool]:
+        """Under `conflict_blame: give_way`, a drone that only other drones crashed crashes the
+        ones without right of way over it too: one drone's lidar can see the other closer than its
+        crash distance while the other's does not (above or below it)."""
+        positions, ranks = self._ranks(snapshot)
+        charged = list(crashed)
+        for i in range(self.num_drones):
+            if flying[i] and by_drones_only[i]:
+                for j in self._conflict_partners(i, positions, flying):
+                    charged[j] = charged[j] or bool(ranks[j] < ranks[i])
+        return charged
+
+    def _excused(self, i: int, snapshot: Snapshot, by_drones_only: bool, flying: list[bool]) -> bool:
+        """Under `end.conflict_blame: give_way`: a crash caused only by other drones, all of which
+        drone `i` has right of way over (the give-way drones are charged instead)."""
+        if self.scenario.task.end.conflict_blame != "give_way" or not by_drones_only:
+            return False
+        positions, ranks = self._ranks(snapshot)
+        partners = self._conflict_partners(i, positions, flying)
+        return bool(partners) and all(ranks[i] > ranks[j] for j in partners)
+
+    def _score(self, i: int, snapshot: Snapshot, before: Snapshot, action: int | None, *, crashed: bool,
+               by_drones_only: bool, flying: list[bool]) -> DroneResult:
         end = self.scenario.task.end
-        crashed = collided or (end.crash_on_lidar and bool(snapshot.scans[i].crash))
         view = self._view(i, snapshot, np.asarray(before.states[i].position_enu_m, dtype=float),
                           crashed=crashed)
         if not crashed and _ground_contact(view, end):
@@ -161,14 +218,17 @@ class EpisodeRunner:
             outcome = "goal"
         elif view.out_of_workspace:
             outcome = "out"
-        terms = {t.name: t(view) for t in self.scenario.task.rewards}
-        terminated = outcome is not None
-        truncated = not terminated and self.step_count >= self.scenario.task.max_steps
-        if truncated:
+        excused = self._excused(i, snapshot, by_drones_only and crashed, flying)
+        scored = dataclasses.replace(view, crashed=False) if excused else view
+        terms = {t.name: t(scored) for t in self.scenario.task.rewards}
+        terminated = outcome is not None and not excused
+        truncated = excused or (not terminated and self.step_count >= self.scenario.task.max_steps)
+        if truncated and not excused:
             outcome = "timeout"
         if terminated or truncated:
             self.done[i] = True
             self.outcomes[i] = outcome
+            self._ended_truncated[i] = truncated
         return DroneResult(self._observe(view), float(sum(terms.values())), terminated, truncated,
                            self._info(view, outcome, terms, action))
 
@@ -180,8 +240,7 @@ class EpisodeRunner:
         position = np.asarray(state.position_enu_m, dtype=float)
         others = [j for j in range(self.num_drones) if j != i]
         workspace = self.scenario.world.workspace
-        ranks = priorities(self.scenario.task.priority, self._starts,
-                           [np.asarray(s.position_enu_m, dtype=float) for s in snapshot.states], self._goals)
+        _, ranks = self._ranks(snapshot)
         return DroneView(
             index=i,
             position_enu_m=position,

@@ -29,6 +29,9 @@ how it is rewarded, when an episode ends, what an action means). Example::
         crash_on_lidar: true        # the lidar's crash flag ends the episode as a crash
         crash_on_ground: true       # touching the ground while flying is a crash (not at the goal)
         ground_contact_m: 0.2       # ... when the body centre is this low above the ground
+        after_goal: hover           # a drone at its goal: hover there (thesis) | land (leave the airspace)
+        conflict_blame: both        # two drones crash into each other: both charged (thesis) | give_way
+        conflict_m: 1.0             # ... a crash with another drone's centre this close is a conflict
       render:                       # camera of render_mode="rgb_array" and videos (all optional)
         width: 512
         height: 384
@@ -82,6 +85,12 @@ class ActionConfig:
         return self.duration_s + self.zero_velocity_s
 
 
+AFTER_GOAL = ("hover", "land")
+"""What a drone does once at its goal (`end.after_goal`)."""
+CONFLICT_BLAME = ("both", "give_way")
+"""Who is charged for a crash between drones (`end.conflict_blame`)."""
+
+
 @dataclass(frozen=True)
 class EndConfig:
     """When an episode ends (besides the step limit)."""
@@ -99,6 +108,19 @@ class EndConfig:
     ground_contact_m: float = 0.2
     """Height of the body centre above the ground (z = 0) that counts as ground contact (an
     iris resting on the ground has its centre at 0.06 m)."""
+    after_goal: str = "hover"
+    """What a drone does once it reached its goal, while the others fly on: `hover` there (the
+    thesis), or `land` (descend at the action speed), so it leaves the airspace it arrived in; in
+    TW a drone hovering at its goal sits in the path of the other drone's climb to the window."""
+    conflict_blame: str = "both"
+    """Who is charged when drones crash into each other (a crash with another drone's centre
+    within `conflict_m`): `both` (the thesis), or `give_way`: only the drones without right of
+    way (`task.priority`). Every drone in the conflict stops (outcome `crash`), but one with right
+    of way over all drones in it is not charged: its last step is scored as if it had not crashed
+    and ends truncated rather than terminated, so its learned values never price in another
+    drone's failure to keep clear (the give-way aircraft's duty in the rules of the air)."""
+    conflict_m: float = 1.0
+    """Distance between drone centres (m) within which a crash counts as a conflict."""
 
 
 @dataclass(frozen=True)
@@ -145,13 +167,16 @@ def _parse_action(node: Node, num_drones: int) -> ActionConfig:
 
 def _parse_end(node: Node) -> EndConfig:
     node.reject_unknown({"goal_margin_m", "crash_on_lidar", "out_of_workspace", "crash_on_ground",
-                         "ground_contact_m"})
+                         "ground_contact_m", "after_goal", "conflict_blame", "conflict_m"})
     return EndConfig(
         goal_margin_m=node.get("goal_margin_m", 0.0).number(non_negative=True, maximum=1000.0),
         crash_on_lidar=node.get("crash_on_lidar", True).boolean(),
         out_of_workspace=node.get("out_of_workspace", True).boolean(),
         crash_on_ground=node.get("crash_on_ground", True).boolean(),
         ground_contact_m=node.get("ground_contact_m", 0.2).number(non_negative=True, maximum=5.0),
+        after_goal=node.get("after_goal", "hover").string(AFTER_GOAL),
+        conflict_blame=node.get("conflict_blame", "both").string(CONFLICT_BLAME),
+        conflict_m=node.get("conflict_m", 1.0).number(positive=True, maximum=100.0),
     )
 
 

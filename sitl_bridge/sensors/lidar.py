@@ -27,7 +27,8 @@ from sitl_bridge.world.schema import LidarConfig
 
 __all__ = ["Lidar", "LidarConfig", "LidarScan", "ray_directions_flu"]
 
-_HIT_FRACTION = operator.itemgetter(2)  # rayTestBatch result: (body, link, fraction, position, normal)
+_HIT_BODY = operator.itemgetter(0)  # rayTestBatch result: (body, link, fraction, position, normal)
+_HIT_FRACTION = operator.itemgetter(2)
 
 
 @dataclass
@@ -41,6 +42,7 @@ class LidarScan:
     crash: bool       # some flagged ray is below config.crash_m
     min_m: float      # shortest flagged ray (max range when none)
     time_us: int = 0  # simulated time of the scan (extension of the contract)
+    crash_by_vehicles: bool = False  # crash, and every flagged ray below crash distance hit a vehicle
 
 
 def _fan(count: int, fov_deg: float) -> list[float]:
@@ -113,6 +115,8 @@ class Lidar:
         # pybullet reads numpy arrays directly (no list conversion)
         results = p.rayTestBatch(starts, ends, physicsClientId=self.sim.client_id) if len(starts) else ()
         fractions = np.fromiter(map(_HIT_FRACTION, results), dtype=float, count=len(results))
+        hit_vehicle = np.isin(np.fromiter(map(_HIT_BODY, results), dtype=np.int64, count=len(results)),
+                              self.sim.vehicle_bodies)
         scans = []
         offset = 0
         for i, c in enumerate(self.configs):
@@ -123,12 +127,17 @@ class Lidar:
             history.append(ranges)
             if len(history) > 1:
                 ranges = np.mean(history, axis=0)
-            scans.append(self._make_scan(c, ranges, i))
+            scans.append(self._make_scan(c, ranges, i, hit_vehicle[offset - n:offset]))
         return scans
 
-    def _make_scan(self, c: LidarConfig, ranges: np.ndarray, vehicle: int) -> LidarScan:
+    def _make_scan(self, c: LidarConfig, ranges: np.ndarray, vehicle: int, hit_vehicle: np.ndarray) -> LidarScan:
         a, b = self._splits[vehicle]
-        flagged = ranges[self._flag_masks[vehicle]]
+        mask = self._flag_masks[vehicle]
+        flagged = ranges[mask]
         min_m = float(flagged.min()) if flagged.size else c.range_m
+        crash = min_m < c.crash_m
+        # which drone a crash between drones is charged to depends on whether only drones caused it
+        by_vehicles = crash and bool(np.all(hit_vehicle[mask & (ranges < c.crash_m)]))
         return LidarScan(horizontal_m=ranges[:a].copy(), up_m=ranges[a:b].copy(), down_m=ranges[b:].copy(),
-                         near=min_m < c.near_m, crash=min_m < c.crash_m, min_m=min_m, time_us=self.sim.time_us)
+                         near=min_m < c.near_m, crash=crash, min_m=min_m, time_us=self.sim.time_us,
+                         crash_by_vehicles=by_vehicles)

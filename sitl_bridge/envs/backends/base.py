@@ -33,6 +33,7 @@ import numpy as np
 
 from sitl_bridge.physics import VehicleState
 from sitl_bridge.physics.simulation import Simulation
+from sitl_bridge.physics.state import Collision
 from sitl_bridge.sensors.lidar import LidarScan
 from sitl_bridge.world import GoalPlacement
 
@@ -81,6 +82,27 @@ class Snapshot:
     """Per vehicle: a collision (obstacle, other vehicle, hard ground contact) since the last call."""
     goals: tuple[GoalPlacement, ...]
     """Per vehicle: its goal region this episode (randomised per the world)."""
+    hit_obstacle: tuple[bool, ...] | None = None
+    """Per vehicle: a collision with something other than a vehicle since the last call (None:
+    the backend does not tell, so every collision counts as one)."""
+
+
+class CollisionFlags:
+    """Per vehicle: whether it collided with anything, and with anything but a vehicle, since
+    `clear()` (what `Snapshot.collided` and `Snapshot.hit_obstacle` report)."""
+
+    def __init__(self, num_vehicles: int) -> None:
+        self.any = [False] * num_vehicles
+        self.obstacle = [False] * num_vehicles
+
+    def clear(self) -> None:
+        self.any = [False] * len(self.any)
+        self.obstacle = [False] * len(self.obstacle)
+
+    def add(self, collision: Collision) -> None:
+        self.any[collision.vehicle] = True
+        if collision.kind != "vehicle":
+            self.obstacle[collision.vehicle] = True
 
 
 T = TypeVar("T")

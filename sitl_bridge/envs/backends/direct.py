@@ -46,7 +46,7 @@ from sitl_bridge.autopilot.stub.estimator import (
 )
 from sitl_bridge.autopilot.stub.modes import CommandResult, LandedState
 from sitl_bridge.autopilot.stub.params import ParamTable
-from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, Snapshot
+from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, CollisionFlags, Snapshot
 from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.jit import kernel
 from sitl_bridge.physics import MotorCommand, Simulation
@@ -118,7 +118,7 @@ class DirectBackend:
                            for i in range(self.num_drones)]
         # per vehicle, what turns its state into the autopilot's input frame
         self._frame_of = [s.truth_frame if ground_truth else s.sample for s in self.sensors]
-        self._collided = [False] * self.num_drones
+        self._collisions = CollisionFlags(self.num_drones)
         self._velocities: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)] * self.num_drones
         self._refresh_steps = max(1, self.steps_for(SETPOINT_PERIOD_S, exact=False))
         self.steps = 0
@@ -141,13 +141,13 @@ class DirectBackend:
         self._lanes = [self._lane(i) for i in range(self.num_drones)]  # the controllers are new objects
         self._velocities = [(0.0, 0.0, 0.0)] * self.num_drones
         self._hover_start()
-        self._collided = [False] * self.num_drones
+        self._collisions.clear()
         return self._snapshot()
 
     def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
         if len(velocities_ned_m_s) != self.num_drones:
             raise ValueError(f"expected {self.num_drones} velocities, got {len(velocities_ned_m_s)}")
-        self._collided = [False] * self.num_drones
+        self._collisions.clear()
         self.set_velocities([tuple(float(c) for c in v) for v in velocities_ned_m_s])
         self.run_steps(self.steps_for(duration_s))  # exact: the loader checked the task's spans
         return self._snapshot()
@@ -193,7 +193,7 @@ class DirectBackend:
             self.steps += 1
             if sim.has_collisions:  # cheap test first: collisions() copies its list
                 for c in sim.collisions():
-                    self._collided[c.vehicle] = True
+                    self._collisions.add(c)
             if until is not None and until():
                 return k + 1
         return steps
@@ -239,7 +239,7 @@ class DirectBackend:
             self.steps += 1
             if sim.has_collisions:
                 for c in sim.collisions():
-                    self._collided[c.vehicle] = True
+                    self._collisions.add(c)
             if until is not None and until():
                 return k + 1
         return steps
@@ -316,6 +316,7 @@ class DirectBackend:
             time_us=self.sim.time_us,
             states=tuple(self.sim.state(i) for i in range(self.num_drones)),
             scans=tuple(self.lidar.scan()),
-            collided=tuple(self._collided),
+            collided=tuple(self._collisions.any),
+            hit_obstacle=tuple(self._collisions.obstacle),
             goals=goals,  # type: ignore[arg-type]  # load_scenario checks every vehicle has a goal
         )

@@ -45,7 +45,7 @@ from sitl_bridge.autopilot.allocation import InstanceClaim, claim_free_instances
 from sitl_bridge.autopilot.in_air_reset import reset_in_air
 from sitl_bridge.autopilot.registry import env_kind
 from sitl_bridge.client import Fleet, OffboardClientError
-from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, Snapshot
+from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, CollisionFlags, Snapshot
 from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.hil import HilError
 from sitl_bridge.sensors import sensor_seed
@@ -84,7 +84,7 @@ class SessionBackend:
         self.claim: InstanceClaim | None = None
         """The vehicle instances this env runs on, held from its first start to `close()`."""
         self.lidar: Lidar | None = None
-        self._collided = [False] * self.num_drones
+        self._collisions = CollisionFlags(self.num_drones)
         self._episode_start_us = 0
         self._closed = False
 
@@ -108,7 +108,7 @@ class SessionBackend:
         self._episode_start_us = session.time_us
         self._hover_start()
         session.take_collisions()  # the episode start's do not count
-        self._collided = [False] * self.num_drones
+        self._collisions.clear()
         return self._snapshot()
 
     def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
@@ -122,9 +122,9 @@ class SessionBackend:
             fleet.fly([np.asarray(v, dtype=float) for v in velocities_ned_m_s], duration_s)
         except SessionError as exc:
             raise BackendError(f"{self.name}: {exc}") from None
-        self._collided = [False] * self.num_drones
+        self._collisions.clear()
         for collision in session.take_collisions():
-            self._collided[collision.vehicle] = True
+            self._collisions.add(collision)
         return self._snapshot()
 
     def close(self) -> None:
@@ -223,7 +223,7 @@ class SessionBackend:
         self.lidar.reset()
         self._episode_start_us = 0  # simulated time restarted at 0 with the re-spawn
         session.take_collisions()  # the episode start's do not count
-        self._collided = [False] * self.num_drones
+        self._collisions.clear()
         return True
 
     def _stop_in_air(self) -> bool:
@@ -261,6 +261,7 @@ class SessionBackend:
             time_us=sim.time_us - self._episode_start_us,
             states=tuple(sim.state(i) for i in range(self.num_drones)),
             scans=tuple(self.lidar.scan()),
-            collided=tuple(self._collided),
+            collided=tuple(self._collisions.any),
+            hit_obstacle=tuple(self._collisions.obstacle),
             goals=tuple(layout.goal_of(i) for i in range(self.num_drones)),  # type: ignore[arg-type]
         )
