@@ -218,7 +218,7 @@ class EpisodeRunner:
             outcome = "goal"
         elif view.out_of_workspace:
             outcome = "out"
-        excused = self._excused(i, snapshot, by_drones_only and crashed, flying)
+        excused = self._excused(i, snapshot, by_drones_only, flying)
         scored = dataclasses.replace(view, crashed=False) if excused else view
         terms = {t.name: t(scored) for t in self.scenario.task.rewards}
         terminated = outcome is not None and not excused
