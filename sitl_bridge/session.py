@@ -319,8 +319,11 @@ class SimSession:
         return taken
 
     def _log_collisions(self) -> None:
-        # Lockstep.after_step observer, in the stepping thread
-        self._collision_log.extend(self.sim.collisions() if self.sim is not None else ())
+        # Lockstep.after_step observer, in the stepping thread; the cheap test first (collisions()
+        # copies its list, every step)
+        sim = self.sim
+        if sim is not None and sim.has_collisions:
+            self._collision_log.extend(sim.collisions())
 
     def deliver_pending_commands(self, until: Callable[[], bool],
                                  timeout_s: float = DELIVERY_TIMEOUT_S) -> None:

@@ -162,6 +162,35 @@ def test_streams_carry_what_mavsdk_health_needs(vehicle) -> None:
         assert counts[name] >= 1
 
 
+def test_client_streams_carry_only_what_sitl_bridge_client_reads(free_instance: int) -> None:
+    """api_streams="client" (the Gymnasium env's `api_telemetry="client"`): PX4's client set and
+    rates (px4_params/px4-rc.mavlink), no attitude or battery streams."""
+    harness = StubHarness(WORLD, seed=11, ground_truth_estimate=True)
+    api = MavlinkApi(harness.autopilot, free_instance, gcs=False, api_streams="client")
+    peer = Peer(free_instance, api.pump)
+    try:
+        messages = []
+        for k in range(round(2.0 / 0.004)):
+            harness.run_for(0.004)
+            api.pump()
+            if k % 25 == 24:
+                messages += peer.drain()
+        messages += peer.drain()
+        counts: dict[str, int] = {}
+        for m in messages:
+            counts[m.get_type()] = counts.get(m.get_type(), 0) + 1
+        assert set(counts) == {"HEARTBEAT", "SYS_STATUS", "EXTENDED_SYS_STATE", "LOCAL_POSITION_NED",
+                               "GLOBAL_POSITION_INT", "GPS_RAW_INT", "HOME_POSITION"}
+        assert 95 <= counts["GLOBAL_POSITION_INT"] <= 101   # 50 Hz over 2 s of simulated time
+        assert 18 <= counts["GPS_RAW_INT"] <= 21 and 9 <= counts["SYS_STATUS"] <= 11
+        with pytest.raises(ValueError, match="api_streams"):
+            MavlinkApi(harness.autopilot, free_instance, gcs=False, api_streams="everything")
+    finally:
+        peer.close()
+        api.close()
+        harness.close()
+
+
 def test_arm_is_acknowledged_by_compid_1_and_shows_in_heartbeat(vehicle) -> None:
     _, api, peer, advance = vehicle
     peer.send(command_long(d.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, target=api.system_id))

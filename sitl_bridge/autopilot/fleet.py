@@ -95,7 +95,7 @@ class FleetConfig:
     """Where autopilot processes keep working directories and logs (None: a temp dir)."""
     api_telemetry: str = "full"
     """What the MAVLink API link streams to MAVSDK: "full" (the autopilot's usual onboard set)
-    or "client" (only what `sitl_bridge.client` reads; kinds that support it: `px4`)."""
+    or "client" (only what `sitl_bridge.client` reads; kinds that support it: `px4`, `stub`)."""
 
     def __post_init__(self) -> None:
         if self.api_telemetry not in ("full", "client"):

@@ -74,7 +74,8 @@ class InProcessStubFleet(AutopilotFleet):
         for instance in self.instances:
             vehicle = StubVehicle(instance, config.host, ground_truth_estimate=config.ground_truth_estimate,
                                   params=stub_params(config.speed_factor, config.params),
-                                  telemetry_batch_wall_s=TELEMETRY_BATCH_WALL_S)
+                                  telemetry_batch_wall_s=TELEMETRY_BATCH_WALL_S,
+                                  api_streams="client" if config.api_telemetry == "client" else "onboard")
             self.vehicles.append(vehicle)
             if not vehicle.connect(config.connect_timeout_s or 10.0):
                 raise SessionError(f"vehicle {instance}: stub could not connect to the HIL link")

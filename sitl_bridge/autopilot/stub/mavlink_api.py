@@ -142,6 +142,8 @@ class MavlinkApi:
         the autopilot's instance.
     host: address to bind and to send to (127.0.0.1 by default).
     gcs: also serve the GCS link.
+    api_streams: the API link's streams, a `telemetry.API_STREAMS` name: "onboard" (the usual
+        set) or "client" (only what `sitl_bridge.client` reads).
     clock: wall clock for the keep-alive and the batching (time.monotonic; injectable for tests).
     batch_wall_s: batch the streams' messages over this much wall time while simulated time
         runs (0: one datagram per pump, for a stub whose pumps may stop without a final one).
@@ -151,7 +153,9 @@ class MavlinkApi:
                  api_bind_port: int | None = None, api_remote_port: int | None = None, gcs: bool = True,
                  gcs_bind_port: int | None = None, gcs_remote_port: int = GCS_REMOTE_PORT,
                  keepalive_wall_s: float = KEEPALIVE_WALL_S, clock: Callable[[], float] = time.monotonic,
-                 batch_wall_s: float = 0.0) -> None:
+                 batch_wall_s: float = 0.0, api_streams: str = "onboard") -> None:
+        if api_streams not in telemetry.API_STREAMS:
+            raise ValueError(f"api_streams: expected one of {', '.join(telemetry.API_STREAMS)}, got {api_streams!r}")
         self.autopilot = autopilot
         self.instance = autopilot.instance if instance is None else instance
         self.system_id = system_id_for(self.instance)
@@ -167,7 +171,7 @@ class MavlinkApi:
             self.links.append(_Link(
                 "api", host, api_bind_port if api_bind_port is not None else API_BIND_BASE_PORT + i,
                 (host, api_remote_port if api_remote_port is not None else API_REMOTE_BASE_PORT + i),
-                telemetry.ONBOARD_RATES_HZ, batch_wall_s))
+                telemetry.API_STREAMS[api_streams], batch_wall_s))
             if gcs:
                 self.links.append(_Link(
                     "gcs", host, gcs_bind_port if gcs_bind_port is not None else GCS_BIND_BASE_PORT + i,

@@ -271,6 +271,20 @@ ONBOARD_RATES_HZ = {
     d.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     d.MAVLINK_MSG_ID_BATTERY_STATUS: 0.5,
 }
+CLIENT_RATES_HZ = {
+    d.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
+    d.MAVLINK_MSG_ID_SYS_STATUS: 5.0,
+    d.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
+    d.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 30.0,
+    d.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 50.0,
+    d.MAVLINK_MSG_ID_GPS_RAW_INT: 10.0,
+    d.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+}
+"""The API link's streams with `api_streams="client"`: only what `sitl_bridge.client` reads, the
+set and rates px4_params/px4-rc.mavlink gives PX4 for it (the Gymnasium env's choice: about half
+the messages of `ONBOARD_RATES_HZ`, so half the packing here and the parsing in MAVSDK)."""
+API_STREAMS = {"onboard": ONBOARD_RATES_HZ, "client": CLIENT_RATES_HZ}
+"""The API link's stream sets by name (`MavlinkApi` api_streams)."""
 GCS_RATES_HZ = {
     d.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
     d.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
