@@ -99,7 +99,9 @@ def test_searches_take_turns_so_one_never_meets_anothers_passing_locks() -> None
     found: list[InstanceClaim] = []
     try:
         fcntl.flock(turn, fcntl.LOCK_EX)  # another search, mid-way
-        search = threading.Thread(target=lambda: found.append(claim_free_instances(2, first, first + 1)))
+        search = threading.Thread(
+            target=lambda: found.append(claim_free_instances(2, first, first + 1))
+        )
         search.start()
         search.join(0.5)
         assert search.is_alive() and not found  # waits for its turn ...
