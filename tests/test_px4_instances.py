@@ -6,15 +6,19 @@ test needs real PX4 (PX4_BIN)."""
 
 from __future__ import annotations
 
+import fcntl
 import multiprocessing as mp
 import os
 import random
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from sitl_bridge.autopilot.allocation import (
+    LOCK_DIR,
+    SEARCH_LOCK_NAME,
     InstanceClaim,
     InstancesBusy,
     claim_free_instances,
@@ -70,7 +74,7 @@ def test_processes_picking_at_the_same_moment_never_overlap_and_a_kill_frees_a_c
         held = {pid: set(instances) for pid, instances, _ in reports}
         claimed = [i for instances in held.values() for i in instances]
         assert len(claimed) == len(set(claimed)) == PROCESSES * PER_PROCESS, held  # no instance twice
-        assert all(first <= i <= last for i in claimed)
+        assert all(first <= i <= last for i in claimed), (sorted(claimed), first, last)
         victim = next(p for p in processes if p.pid == min(held, key=lambda pid: min(held[pid])))
         survivor = next(pid for pid in held if pid != victim.pid)
         with pytest.raises(InstancesBusy, match=f"instance {min(held[victim.pid])} is in use"):
@@ -84,6 +88,28 @@ def test_processes_picking_at_the_same_moment_never_overlap_and_a_kill_frees_a_c
         for process in processes:
             process.kill()
             process.join(10)
+
+
+def test_searches_take_turns_so_one_never_meets_anothers_passing_locks() -> None:
+    """A search holds the machine's search lock throughout: one that runs while another search
+    locks and lets go block after block would take those passing locks for claims and skip free
+    blocks (two searchers one instance apart leapfrogged out of their whole range)."""
+    first = _free_window(2)
+    turn = os.open(LOCK_DIR / SEARCH_LOCK_NAME, os.O_RDONLY | os.O_CREAT | os.O_CLOEXEC, 0o666)
+    found: list[InstanceClaim] = []
+    try:
+        fcntl.flock(turn, fcntl.LOCK_EX)  # another search, mid-way
+        search = threading.Thread(
+            target=lambda: found.append(claim_free_instances(2, first, first + 1))
+        )
+        search.start()
+        search.join(0.5)
+        assert search.is_alive() and not found  # waits for its turn ...
+    finally:
+        os.close(turn)
+    search.join(10)
+    assert [claim.instances for claim in found] == [(first, first + 1)]  # ... then searches
+    found[0].release()
 
 
 def test_claims_in_one_process_do_not_overlap_and_release_frees_them() -> None:

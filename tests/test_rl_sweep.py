@@ -4,6 +4,7 @@ half-finished sweep, a failing run reported without stopping the others, the sam
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,9 +17,9 @@ WORLD = str(worlds_dir() / "empty.yaml")
 TINY = ["--episodes", "2", "--eval-every", "0", "--eval-episodes", "0"]
 
 
-def _sweep(root: Path, *extra: str) -> subprocess.CompletedProcess:
+def _sweep(root: Path, *extra: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "sitl_bridge", "sweep", WORLD, "--out", str(root), *TINY, *extra],
-                          capture_output=True, text=True, timeout=300)
+                          capture_output=True, text=True, timeout=300, env=env)
 
 
 def _summary(root: Path) -> dict[int, dict]:
@@ -98,9 +99,12 @@ def test_bad_seeds_and_grid_are_one_line_errors(tmp_path) -> None:
 
 
 def test_two_seed_sweep_on_rays_local_cluster(tmp_path) -> None:
+    """A local cluster of its own: RAY_ADDRESS=local, so that neither a RAY_ADDRESS of the caller
+    nor a cluster started with `ray start` on this machine (which Ray joins by default) is used."""
     pytest.importorskip("ray")
     root = tmp_path / "sweep"
-    proc = _sweep(root, "--seeds", "0-1", "--backend", "ray")
+    own_cluster = {**os.environ, "RAY_ADDRESS": "local"}
+    proc = _sweep(root, "--seeds", "0-1", "--backend", "ray", env=own_cluster)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     rows = _summary(root)
     for seed in (0, 1):

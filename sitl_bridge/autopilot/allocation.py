@@ -13,6 +13,12 @@ pick the same instances. A search also skips instances that something taking no 
 bound ports (a `sitl-bridge stub` started by hand, a MAVSDK client) or a PX4 server running as
 one (`/tmp/px4_lock-N`, e.g. started by hand for the `external` kind).
 
+Searches take turns (`SEARCH_LOCK_NAME`): a search locks a block's instances one by one and lets
+them go when a later one is taken, so two searches at once each saw the other's passing locks
+as claims and skipped free blocks they never came back to. Two searchers one instance apart
+leapfrogged like that through a whole range (each holding the first instance of its next block
+while the other took the second) and one fell off its end with free instances left behind.
+
 Handing instances to a child process: hand nothing (or a preferred first instance) and let
 the child claim its own. A lock cannot be handed on: the child's `flock` on a file of its own
 conflicts with the parent's, and a parent that released first leaves a gap another run can
@@ -24,7 +30,8 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
-from collections.abc import Callable, Iterable, Sequence
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
 from sitl_bridge.autopilot.fleet import SessionError
@@ -35,6 +42,11 @@ LOCK_DIR = Path("/tmp")
 """Fixed, not `$TMPDIR`: ports are one per machine, so their claims must be too (two runs with
 different TMPDIRs would not see each other's lock files). PX4 keeps its own in /tmp too."""
 LOCK_NAME = "sitl-bridge-instance-{}.lock"
+SEARCH_LOCK_NAME = "sitl-bridge-instance-search.lock"
+"""Held (`flock`) by `claim_free_instances` for its whole search: one search at a time per machine."""
+SEARCH_WAIT_S = 10.0
+"""How long a search waits for its turn before it searches anyway (a holder that never lets go,
+e.g. a stopped process: its claims stay exclusive, only the pick may skip a block)."""
 
 
 class InstancesBusy(SessionError):
@@ -131,15 +143,42 @@ def claim_instances(instances: Iterable[int], *, check_free: bool = False) -> In
     return InstanceClaim(instances, fds)
 
 
+@contextlib.contextmanager
+def _search_turn(wait_s: float = SEARCH_WAIT_S) -> Iterator[None]:
+    """Hold the machine's search lock for the block (waiting up to `wait_s` for it); without it
+    (not there in time, or its file not usable) the search runs anyway."""
+    try:
+        fd = os.open(LOCK_DIR / SEARCH_LOCK_NAME, os.O_RDONLY | os.O_CREAT | os.O_CLOEXEC, 0o666)
+    except OSError:
+        yield
+        return
+    try:
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError:
+                if time.monotonic() >= deadline:
+                    break
+                time.sleep(0.001)
+        yield
+    finally:
+        os.close(fd)  # drops the lock if held
+
+
 def claim_free_instances(count: int, first: int = 0, last: int = MAX_INSTANCE) -> InstanceClaim:
     """Claim `count` consecutive free instances (a run's vehicles are consecutive) within
     0..`last`: the first free block from `first` upward, else from 0 (`first` is a preference:
-    an env's `instance_base`). Raises InstancesBusy when none is free."""
+    an env's `instance_base`). Raises InstancesBusy when none is free. One search at a time per
+    machine (`SEARCH_LOCK_NAME`), so a lock met on the way is a claim, not another search's
+    passing try."""
     top = last - count + 1  # the highest first instance that fits
     bases = [*range(max(first, 0), top + 1), *range(0, min(first, top + 1))]
-    for base in bases:
-        with contextlib.suppress(InstancesBusy):
-            return claim_instances(range(base, base + count), check_free=True)
+    with _search_turn():
+        for base in bases:
+            with contextlib.suppress(InstancesBusy):
+                return claim_instances(range(base, base + count), check_free=True)
     raise InstancesBusy(f"no {count} consecutive free vehicle instances in 0..{last}: too many runs in parallel")
 
 
@@ -154,5 +193,5 @@ def hold_instances(instances: Sequence[int], adopted: InstanceClaim | None = Non
     return lambda: None
 
 
-__all__ = ["LOCK_DIR", "InstanceClaim", "InstancesBusy", "claim_free_instances", "claim_instances", "hold_instances",
-           "lock_path"]
+__all__ = ["LOCK_DIR", "SEARCH_LOCK_NAME", "InstanceClaim", "InstancesBusy", "claim_free_instances", "claim_instances",
+           "hold_instances", "lock_path"]

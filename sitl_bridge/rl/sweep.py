@@ -22,13 +22,15 @@ take; so the parent keeps nothing. px4 envs claim in 0..9 whatever `instance_bas
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import multiprocessing as mp
+import os
 import re
 import time
 import traceback
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -274,6 +276,29 @@ def run_serial(jobs: list[SweepJob], on_result: Callable[[SweepResult], None] | 
 
 
 # -- Ray ------------------------------------------------------------------------------------
+RAY_WORKER_NICENESS = "RAY_worker_niceness"
+"""Ray's setting (an environment variable) of how many nice levels below the raylet its workers
+run: 15 by default."""
+
+
+@contextlib.contextmanager
+def _local_cluster_env() -> Iterator[None]:
+    """Around `ray.init`: a local cluster started here runs its workers at the sweep's own
+    priority (RAY_worker_niceness 0, unless the user set it). Ray's +15 keeps its daemons
+    responsive, but a sweep's tasks are the work: on a busy machine a task at +15 gets a small
+    fraction of the CPU of any process at the sweep's priority (two 2-episode runs beside two
+    busy processes: tasks about 100 s instead of 30 s; the test of this backend ran into its
+    300 s limit at load 3-6)."""
+    unset = RAY_WORKER_NICENESS not in os.environ
+    if unset:
+        os.environ[RAY_WORKER_NICENESS] = "0"
+    try:
+        yield
+    finally:
+        if unset:
+            os.environ.pop(RAY_WORKER_NICENESS, None)
+
+
 def run_ray(jobs: list[SweepJob], address: str | None = None, num_cpus_per_run: float = 1.0,
             on_result: Callable[[SweepResult], None] | None = None) -> list[SweepResult]:
     """Run `jobs` as Ray tasks: Ray's local cluster by default, `address` for an existing one
@@ -285,7 +310,9 @@ def run_ray(jobs: list[SweepJob], address: str | None = None, num_cpus_per_run: 
         raise ConfigError("command line: --backend ray: Ray is not installed (pip install 'sitl-bridge[ray]')") from None
     started_here = not ray.is_initialized()
     if started_here:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        # read by the processes a local cluster starts; a cluster at `address` keeps its own setting
+        with _local_cluster_env():
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
     try:
         task = ray.remote(num_cpus=num_cpus_per_run)(run_job)
         refs = {task.remote(job): job for job in jobs}
