@@ -28,7 +28,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="parallel processes for training and evaluation (local backend; default: CPU count)")
     parser.add_argument("--backend", choices=("local", "ray"), default="local",
                         help="local processes, or Ray tasks (pip install 'sitl-bridge[ray]')")
-    parser.add_argument("--address", help="Ray cluster address (default: start Ray's local cluster)")
+    parser.add_argument("--address", help="Ray cluster address (default: start Ray's own local cluster; auto: the one 'ray start' runs here)")
     parser.add_argument("--only", nargs="+", metavar="SCENARIO",
                         help="train only these scenarios (file stems; comparisons ending in one of them too)")
     parser.add_argument("--report-only", action="store_true", help="train nothing: evaluate and report the runs there are")

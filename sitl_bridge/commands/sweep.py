@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="parallel processes (local backend; default: CPU count)")
     parser.add_argument("--backend", choices=("local", "ray"), default="local",
                         help="local processes, or Ray tasks (pip install 'sitl-bridge[ray]')")
-    parser.add_argument("--address", help="Ray cluster address (default: start Ray's local cluster)")
+    parser.add_argument("--address", help="Ray cluster address (default: start Ray's own local cluster; auto: the one 'ray start' runs here)")
     parser.add_argument("--autopilot", choices=("direct", "stub", "px4"), default="direct")
     parser.add_argument("--instance-base", type=int, default=0,
                         help="preferred first vehicle instance (stub/px4 ports 4560+i, ...); each run "

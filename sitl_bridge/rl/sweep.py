@@ -312,7 +312,9 @@ def run_ray(jobs: list[SweepJob], address: str | None = None, num_cpus_per_run: 
     if started_here:
         # read by the processes a local cluster starts; a cluster at `address` keeps its own setting
         with _local_cluster_env():
-            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+            # "local": a cluster of its own, as documented; Ray's default (None) would join one
+            # named in RAY_ADDRESS or left running by `ray start` (`--address auto` asks for that)
+            ray.init(address=address or "local", include_dashboard=False, log_to_driver=False)
     try:
         task = ray.remote(num_cpus=num_cpus_per_run)(run_job)
         refs = {task.remote(job): job for job in jobs}
