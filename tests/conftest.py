@@ -9,10 +9,17 @@ from __future__ import annotations
 
 import os
 import random
+import signal
 
 import pytest
 
 from sitl_bridge.ports import instance_free
+
+# A shell starts background jobs (`pytest ... &`) with SIGINT ignored, and children inherit an
+# ignored signal through exec: the tests that stop `sitl-bridge run` with Ctrl-C would then wait
+# for a process that never sees it. A handler here is reset to the default in every child.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def instance_ports_free(instance: int) -> bool:
