@@ -66,6 +66,7 @@ class EpisodeRunner:
         self.outcomes: list[str | None] = [None] * self.num_drones
         self._ended_truncated = [False] * self.num_drones
         self._snapshot: Snapshot | None = None
+        self._ranked: tuple[Snapshot, list[np.ndarray], np.ndarray] | None = None
         self._starts: list[np.ndarray] = []
         self._goals: list[np.ndarray] = []
         self._last: list[DroneResult] = []
@@ -97,6 +98,7 @@ class EpisodeRunner:
         self.done = [False] * self.num_drones
         self.outcomes = [None] * self.num_drones
         self._ended_truncated = [False] * self.num_drones
+        self._ranked = None  # priorities depend on this episode's starts and goals
         self._starts = [np.array(s.position_enu_m, dtype=float) for s in snapshot.states]
         self._goals = [np.array(g.center_m, dtype=float) for g in snapshot.goals]
         results = []
@@ -178,9 +180,13 @@ class EpisodeRunner:
                 if j != i and flying[j] and float(np.linalg.norm(positions[j] - positions[i])) < reach]
 
     def _ranks(self, snapshot: Snapshot) -> tuple[list[np.ndarray], np.ndarray]:
-        """Every drone's position and priority (`task.priority`) in `snapshot`."""
-        positions = [np.asarray(s.position_enu_m, dtype=float) for s in snapshot.states]
-        return positions, priorities(self.scenario.task.priority, self._starts, positions, self._goals)
+        """Every drone's position and priority (`task.priority`) in `snapshot`, worked out once
+        per snapshot (every drone's view and the conflict rules read them)."""
+        if self._ranked is None or self._ranked[0] is not snapshot:
+            positions = [np.asarray(s.position_enu_m, dtype=float) for s in snapshot.states]
+            ranks = priorities(self.scenario.task.priority, self._starts, positions, self._goals)
+            self._ranked = (snapshot, positions, ranks)
+        return self._ranked[1], self._ranked[2]
 
     def _charge_give_way(self, snapshot: Snapshot, crashed: list[bool], by_drones_only: list[bool],
                          flying: list[bool]) -> list[bool]:
