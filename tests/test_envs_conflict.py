@@ -1,6 +1,6 @@
 """Multi-drone episode ends (issue 12, TW): `end.after_goal` (a drone at its goal hovers or
-lands) and `end.conflict_blame` (a crash between drones charged to both, or only to the drone
-that must give way). Real direct-backend flights in the TW-relative scenario."""
+lands), `end.conflict_blame` (a crash between drones charged to both, or only to the drone
+that must give way) and `end.min_separation_m` (closer than that is a conflict crash). Real direct-backend flights in the TW-relative scenario."""
 
 from __future__ import annotations
 
@@ -63,6 +63,17 @@ def test_both_drones_are_charged_under_both(tmp_path: Path) -> None:
         assert info["reward_terms"]["crash"] == -100
 
 
+def test_loss_of_separation_is_a_conflict_charged_to_the_drone_that_must_give_way(tmp_path: Path) -> None:
+    touching = _fly(_world(tmp_path, conflict_blame="give_way"), _head_on_in_the_window)
+    apart = _fly(_world(tmp_path, conflict_blame="give_way", min_separation_m=3.0), _head_on_in_the_window)
+    assert len(apart) < len(touching)  # it ends before the drones meet in the window
+    _, terminated0, _, info0 = apart[-1]["drone0"]
+    _, terminated1, truncated1, info1 = apart[-1]["drone1"]
+    assert info0["outcome"] == info1["outcome"] == "crash"
+    assert terminated0 and info0["reward_terms"]["crash"] == -100
+    assert truncated1 and not terminated1 and info1["reward_terms"]["crash"] == 0
+
+
 def test_a_wall_crash_next_to_the_other_drone_is_charged_to_both(tmp_path: Path) -> None:
     # toward the goal from 1 m up: both fly into the wall below the window, side by side
     last = _fly(_world(tmp_path, conflict_blame="give_way"), lambda step: TOWARD_GOAL)[-1]
@@ -99,6 +110,7 @@ def test_a_drone_at_its_goal_lands_with_after_goal_land(tmp_path: Path) -> None:
     ("after_goal", "teleport", r"task.end.after_goal: expected one of hover, land"),
     ("conflict_blame", "id", r"task.end.conflict_blame: expected one of both, give_way"),
     ("conflict_m", -1, r"task.end.conflict_m"),
+    ("min_separation_m", -0.5, r"task.end.min_separation_m"),
 ])
 def test_bad_end_settings_are_one_line_errors(tmp_path: Path, key: str, value: object, message: str) -> None:
     with pytest.raises(ConfigError, match=message):

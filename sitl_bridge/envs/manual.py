@@ -73,6 +73,9 @@ def describe(scenario: Scenario) -> str:
                  "and uncharged)" if end.conflict_blame == "give_way" else "every drone in it")
         lines.append(f"A drone whose episode ended {after} while the others fly on. A crash between "
                      f"drones (centres within {end.conflict_m:g} m) is charged to {blame}.")
+        if end.min_separation_m > 0.0:
+            lines.append(f"Two flying drones closer than {end.min_separation_m:g} m lose separation: "
+                         "a crash between drones, charged the same way.")
     lines.append("")
     return "\n".join(lines)
 

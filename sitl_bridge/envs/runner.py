@@ -131,6 +131,8 @@ class EpisodeRunner:
         self._snapshot = snapshot
         self.step_count += 1
         crashed, by_drones_only = self._crashes(snapshot, collided)
+        if self.scenario.task.end.min_separation_m > 0.0:
+            self._lose_separation(snapshot, crashed, by_drones_only, flying)
         if self.scenario.task.end.conflict_blame == "give_way":
             crashed = self._charge_give_way(snapshot, crashed, by_drones_only, flying)
 
@@ -173,9 +175,23 @@ class EpisodeRunner:
             by_drones_only.append(crashed[-1] and not obstacle and not (lidar and scan.crash and not scan.crash_by_vehicles))
         return crashed, by_drones_only
 
+    def _lose_separation(self, snapshot: Snapshot, crashed: list[bool], by_drones_only: list[bool],
+                         flying: list[bool]) -> None:
+        """`end.min_separation_m`: a flying drone with another flying drone closer than it crashes
+        (in place), caused by drones only unless it had also hit something."""
+        positions, _ = self._ranks(snapshot)
+        limit = self.scenario.task.end.min_separation_m
+        for i in range(self.num_drones):
+            if flying[i] and not crashed[i] and any(
+                    flying[j] and float(np.linalg.norm(positions[j] - positions[i])) < limit
+                    for j in range(self.num_drones) if j != i):
+                crashed[i] = by_drones_only[i] = True
+
     def _conflict_partners(self, i: int, positions: list[np.ndarray], flying: list[bool]) -> list[int]:
-        """The other flying drones within `end.conflict_m` of drone `i`."""
-        reach = self.scenario.task.end.conflict_m
+        """The other flying drones within `end.conflict_m` (or `min_separation_m`, if larger) of
+        drone `i`."""
+        end = self.scenario.task.end
+        reach = max(end.conflict_m, end.min_separation_m)
         return [j for j in range(self.num_drones)
                 if j != i and flying[j] and float(np.linalg.norm(positions[j] - positions[i])) < reach]
 

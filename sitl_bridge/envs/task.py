@@ -32,6 +32,7 @@ how it is rewarded, when an episode ends, what an action means). Example::
         after_goal: hover           # a drone at its goal: hover there (thesis) | land (leave the airspace)
         conflict_blame: both        # two drones crash into each other: both charged (thesis) | give_way
         conflict_m: 1.0             # ... a crash with another drone's centre this close is a conflict
+        min_separation_m: 0.0       # flying drones closer than this lose separation: a conflict crash (0: off)
       render:                       # camera of render_mode="rgb_array" and videos (all optional)
         width: 512
         height: 384
@@ -121,6 +122,11 @@ class EndConfig:
     drone's failure to keep clear (the give-way aircraft's duty in the rules of the air)."""
     conflict_m: float = 1.0
     """Distance between drone centres (m) within which a crash counts as a conflict."""
+    min_separation_m: float = 0.0
+    """Loss of separation: two flying drones whose centres come closer than this (m) crash, a
+    conflict charged as `conflict_blame` says, even when they do not touch (0: off, only
+    touching counts). Without it two drones can squeeze past each other through a window 0.9 m
+    apart, which no traffic rule would accept."""
 
 
 @dataclass(frozen=True)
@@ -167,7 +173,8 @@ def _parse_action(node: Node, num_drones: int) -> ActionConfig:
 
 def _parse_end(node: Node) -> EndConfig:
     node.reject_unknown({"goal_margin_m", "crash_on_lidar", "out_of_workspace", "crash_on_ground",
-                         "ground_contact_m", "after_goal", "conflict_blame", "conflict_m"})
+                         "ground_contact_m", "after_goal", "conflict_blame", "conflict_m",
+                         "min_separation_m"})
     return EndConfig(
         goal_margin_m=node.get("goal_margin_m", 0.0).number(non_negative=True, maximum=1000.0),
         crash_on_lidar=node.get("crash_on_lidar", True).boolean(),
@@ -177,6 +184,7 @@ def _parse_end(node: Node) -> EndConfig:
         after_goal=node.get("after_goal", "hover").string(AFTER_GOAL),
         conflict_blame=node.get("conflict_blame", "both").string(CONFLICT_BLAME),
         conflict_m=node.get("conflict_m", 1.0).number(positive=True, maximum=100.0),
+        min_separation_m=node.get("min_separation_m", 0.0).number(non_negative=True, maximum=100.0),
     )
 
 
