@@ -69,7 +69,8 @@ def test_a_wall_with_one_gap_gives_the_detour_through_it() -> None:
 def test_the_distance_falls_continuously_along_the_path() -> None:
     field = path_field(WORKSPACE, (slotted_wall(),), GOAL)
     corners = [(0.0, -3.0, 2.0), (2.85, -1.0, 2.0), (2.85, 1.0, 2.0), (0.3, 2.7, 2.0)]
-    points = np.concatenate([np.linspace(a, b, 60, endpoint=False) for a, b in zip(corners, corners[1:])]
+    legs = zip(corners[:-1], corners[1:], strict=True)
+    points = np.concatenate([np.linspace(a, b, 60, endpoint=False) for a, b in legs]
                             + [np.array([corners[-1]])])
     values = np.array([field.distance(point) for point in points])
     steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
