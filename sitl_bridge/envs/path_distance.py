@@ -12,20 +12,26 @@ any static layout a scenario file can write:
   geometry, on a private pybullet DIRECT client, and the nodes inside its grown bounding box are
   probed with a sphere of radius `clearance_m` (`getClosestPoints`). Moving obstacles (movers)
   are ignored; the ground is no obstacle (the workspace bounds the path from below).
-* Moves: 26-connected, weighted by their Euclidean length. A move is allowed only when every node
-  of the cube it spans is free (no corner cutting), so grown obstacles at least a cell thick are
-  watertight. The grid's metric is exact along axes and diagonals and at most 8 % longer than
-  the straight line in between (a (2, 1, 0) direction).
-* Distances: Dijkstra (a compiled heap kernel, `sitl_bridge.jit`) from the free nodes within
-  one cell of the goal box, each seeded with its Euclidean distance to the box (0 inside).
-* Query `PathField.distance(p)`: min over the free, reachable corners k of p's cell of
-  field[k] + |p - k| (and p's straight distance to the goal box when p is within a cell of it
-  and its whole cell is free: 0 inside the box). A point with no such corner (inside a grown
-  obstacle, outside the workspace) gets its nearest reachable node's value plus the distance
-  to that node.
+* Search: Lazy Theta* (Nash, Koenig and Tovey 2010) run to exhaustion from the goal box, in a
+  compiled kernel (`sitl_bridge.jit`): Dijkstra over the 26-connected grid (moves weighted by
+  their Euclidean length; a diagonal only where unit axis steps over free nodes could make it,
+  so it never slips between two blocked nodes), in which every node keeps the farthest parent it
+  sees (the goal box itself when in sight) and its length is the parent's plus the straight
+  segment. Lengths so follow straight lines at any angle (plain 26-connected Dijkstra is up to
+  8 % long between the grid's directions). A segment is in sight when every point sampled along
+  it (each quarter cell) is nearer to a free node than to a blocked one. Free nodes within a
+  cell of the goal box start the search with their straight distance to it (0 inside).
+* Query `PathField.distance(p)`: the least over the reachable corners k of p's cell of
+  field[k] + |p - k| and, for their parents q in p's sight, field[q] + |p - q| (the goal box
+  as parent: p's straight distance to it; 0 inside the box). So it is exact in free space and
+  continuous but for a few centimetres where a cell beside an obstacle changes. A point with no
+  reachable corner (inside a grown obstacle, outside the workspace) gets its nearest reachable
+  node's value plus the distance to that node.
 * Cache: `path_field` keeps the occupancy per (workspace, grid, static obstacle poses) and the
   field per (occupancy, goal box), so scenarios whose obstacles or goal are drawn per episode
-  compute again only when the layout changed (`worlds/random_goal.yaml`: Dijkstra only).
+  compute again only when the layout changed (`worlds/random_goal.yaml`: the search only).
+  CPU time for two_blocks' 12 x 15 x 6 m at 0.5 m (10075 nodes): about 10 ms occupancy and
+  15 ms search; a query about 10 us.
 """
 
 from __future__ import annotations
@@ -50,7 +56,7 @@ CLEARANCE_M = 0.4
 """Default clearance kept from static obstacles (m): the lidar's default crash distance."""
 MAX_NODES = 4_000_000
 """Largest grid accepted (about 100 MB of field and occupancy): a finer `cell_m` is refused."""
-CACHE_SIZE = 32
+CACHE_SIZE = 16
 """Occupancies and fields kept per process (least recently used dropped first)."""
 
 
