@@ -2,8 +2,8 @@
 logged under its own name (`info["reward_terms"]["closer_to_goal"]`), MuJoCo-Playground style.
 
 The scenario's `reward:` mapping gives each term a scale (`per_step: -5`) or a mapping with the
-scale and options (`closer_to_goal: {scale: 10, mode: binary, along: path}`). The step reward is the sum of
-`scale * term(view)` over the listed terms; unlisted terms are off.
+scale and options (`closer_to_goal: {scale: 10, mode: binary, along: path}`). The step reward is
+the sum of `scale * term(view)` over the listed terms; unlisted terms are off.
 
 | term | unscaled value |
 |---|---|

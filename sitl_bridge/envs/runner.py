@@ -261,7 +261,7 @@ class EpisodeRunner:
                 raise ConfigError(f"{world.source}: task.reward.closer_to_goal: {exc}") from None
             if not reached:
                 raise ConfigError(
-                    f"{world.source}: task.reward.closer_to_goal: along: path: in scenario {world.name!r} "
+                    f"{world.source}: task.reward.closer_to_goal: along: path: in scenario {world.name!r}, "
                     f"{world.vehicles[i].name}'s goal {goal.name!r} cannot be reached from "
                     f"({', '.join(f'{c:.1f}' for c in start)}) around the static obstacles grown by "
                     f"clearance_m {grid.clearance_m:g} on a {grid.cell_m:g} m grid (a smaller "
