@@ -55,6 +55,9 @@ def describe(scenario: Scenario) -> str:
         index += f.size
     lines += ["", "## Rewards", "| term | scale |", "|---|---|"]
     lines += [f"| `{t.name}` | {t.scale:g} |" for t in task.rewards]
+    lines += [f"\n`{t.name}` measures progress along the shortest path to the goal box around the static "
+              f"obstacles, kept {t.path.clearance_m:g} m clear, on a {t.path.cell_m:g} m grid "
+              "(not along the straight line)." for t in task.rewards if t.path is not None]
     end = task.end
     ends = ["goal region reached"]
     ends.append("collision" + (" or lidar crash flag" if end.crash_on_lidar else ""))

@@ -2,12 +2,12 @@
 logged under its own name (`info["reward_terms"]["closer_to_goal"]`), MuJoCo-Playground style.
 
 The scenario's `reward:` mapping gives each term a scale (`per_step: -5`) or a mapping with the
-scale and options (`closer_to_goal: {scale: 10, mode: binary}`). The step reward is the sum of
-`scale * term(view)` over the listed terms; unlisted terms are off.
+scale and options (`closer_to_goal: {scale: 10, mode: binary, along: path}`). The step reward is
+the sum of `scale * term(view)` over the listed terms; unlisted terms are off.
 
 | term | unscaled value |
 |---|---|
-| `closer_to_goal` | `progress` (default): metres gained toward the goal this step (negative when moving away; potential-based shaping); `binary`: 1 when the distance shrank by more than `min_progress_m` (default 0.1), else 0 |
+| `closer_to_goal` | `progress` (default): metres gained toward the goal this step (negative when moving away; potential-based shaping); `binary`: 1 when the distance shrank by more than `min_progress_m` (default 0.1), else 0. `along: straight` (default): the straight-line distance to the goal's centre; `along: path`: the length of the shortest path to the goal box around the static obstacles grown by `clearance_m` (default 0.4), on a grid of `cell_m` (default 0.5; envs/path_distance.py), so shaping leads around obstacles instead of into them |
 | `goal_reached` | 1 on the step the goal is reached |
 | `per_step` | 1 every step |
 | `near_obstacle` | 1 when the lidar's near flag is set (and the drone did not crash) |
@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sitl_bridge.envs.path_distance import PathGrid
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.errors import ConfigError, Node
 
@@ -40,6 +41,8 @@ class RewardTerm:
     name: str
     scale: float
     term: Callable[[DroneView], float]
+    path: PathGrid | None = None
+    """The path distance the term reads (`DroneView.path_distance`), None when it reads none."""
 
     def __call__(self, view: DroneView) -> float:
         return self.scale * float(self.term(view))
@@ -50,9 +53,15 @@ def progress_toward_goal(view: DroneView) -> float:
     return view.previous_distance_to_goal_m - view.distance_to_goal_m
 
 
-def closer_binary(min_progress_m: float) -> Callable[[DroneView], float]:
+def progress_along_path(view: DroneView) -> float:
+    """Metres gained along the shortest obstacle-free path to the goal during the step."""
+    return view.previous_path_distance_to_goal_m - view.path_distance_to_goal_m
+
+
+def closer_binary(min_progress_m: float,
+                  progress: Callable[[DroneView], float] = progress_toward_goal) -> Callable[[DroneView], float]:
     """1 when the step brought the drone more than `min_progress_m` closer to its goal."""
-    return lambda view: 1.0 if progress_toward_goal(view) > min_progress_m else 0.0
+    return lambda view: 1.0 if progress(view) > min_progress_m else 0.0
 
 
 def goal_reached(view: DroneView) -> float:
@@ -106,13 +115,24 @@ def _parse_term(name: str, node: Node) -> RewardTerm:
     if name == "closer_to_goal":
         if not isinstance(node.value, dict):
             return RewardTerm(name, _scale(node), progress_toward_goal)
-        node.reject_unknown({"scale", "mode", "min_progress_m"})
+        node.reject_unknown({"scale", "mode", "min_progress_m", "along", "cell_m", "clearance_m"})
         mode = node.get("mode", "progress").string(("progress", "binary"))
         scale = _scale(node.get("scale"))
+        path = None
+        if node.get("along", "straight").string(("straight", "path")) == "path":
+            path = PathGrid(cell_m=node.get("cell_m", PathGrid.cell_m).number(minimum=0.05, maximum=10.0),
+                            clearance_m=node.get("clearance_m", PathGrid.clearance_m).number(
+                                non_negative=True, maximum=10.0))
+        else:
+            for key in ("cell_m", "clearance_m"):
+                if node.has(key):
+                    raise ConfigError(f"{node.source}: {node.get(key).path}: only with `along: path` "
+                                      "(with `along: straight` it would be ignored)")
+        progress = progress_along_path if path is not None else progress_toward_goal
         if mode == "progress":
-            return RewardTerm(name, scale, progress_toward_goal)
+            return RewardTerm(name, scale, progress, path)
         min_progress = node.get("min_progress_m", 0.1).number(non_negative=True, maximum=1000.0)
-        return RewardTerm(name, scale, closer_binary(min_progress))
+        return RewardTerm(name, scale, closer_binary(min_progress, progress), path)
     if name == "separation":
         if not isinstance(node.value, dict):
             return RewardTerm(name, _scale(node), separation(3.0))

@@ -19,10 +19,12 @@ from sitl_bridge.envs.actions import action_velocity
 from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend, Snapshot
 from sitl_bridge.envs.options import EnvOptions
+from sitl_bridge.envs.path_distance import PathField, Unreachable, path_field
 from sitl_bridge.envs.priority import priorities
 from sitl_bridge.envs.scenario import Scenario
 from sitl_bridge.envs.task import EndConfig
 from sitl_bridge.envs.view import DroneView
+from sitl_bridge.errors import ConfigError
 from sitl_bridge.frames import quat_to_euler
 from sitl_bridge.world import GoalPlacement
 
@@ -69,6 +71,7 @@ class EpisodeRunner:
         self._ranked: tuple[Snapshot, list[np.ndarray], np.ndarray] | None = None
         self._starts: list[np.ndarray] = []
         self._goals: list[np.ndarray] = []
+        self._paths: list[PathField | None] = [None] * self.num_drones
         self._last: list[DroneResult] = []
 
     @classmethod
@@ -101,6 +104,7 @@ class EpisodeRunner:
         self._ranked = None  # priorities depend on this episode's starts and goals
         self._starts = [np.array(s.position_enu_m, dtype=float) for s in snapshot.states]
         self._goals = [np.array(g.center_m, dtype=float) for g in snapshot.goals]
+        self._paths = self._path_fields(snapshot)
         results = []
         for i in range(self.num_drones):
             view = self._view(i, snapshot, self._starts[i], crashed=False)
@@ -254,6 +258,33 @@ class EpisodeRunner:
         return DroneResult(self._observe(view), float(sum(terms.values())), terminated, truncated,
                            self._info(view, outcome, terms, action))
 
+    def _path_fields(self, snapshot: Snapshot) -> list[PathField | None]:
+        """Per drone: the path distance to its goal this episode when a reward term reads it
+        (`along: path`), from the episode's obstacle placements (cached by layout)."""
+        grid = next((t.path for t in self.scenario.task.rewards if t.path is not None), None)
+        if grid is None:
+            return [None] * self.num_drones
+        world = self.scenario.world
+        fields: list[PathField | None] = []
+        for i, goal in enumerate(snapshot.goals):
+            start = np.asarray(snapshot.states[i].position_enu_m, dtype=float)
+            try:
+                field_ = path_field(world.workspace, snapshot.obstacles, goal, grid)
+                reached = field_.reaches(start)
+            except Unreachable:
+                reached = False
+            except ValueError as exc:  # a grid too fine for the workspace
+                raise ConfigError(f"{world.source}: task.reward.closer_to_goal: {exc}") from None
+            if not reached:
+                raise ConfigError(
+                    f"{world.source}: task.reward.closer_to_goal: along: path: in scenario {world.name!r}, "
+                    f"{world.vehicles[i].name}'s goal {goal.name!r} cannot be reached from "
+                    f"({', '.join(f'{c:.1f}' for c in start)}) around the static obstacles grown by "
+                    f"clearance_m {grid.clearance_m:g} on a {grid.cell_m:g} m grid (a smaller "
+                    "clearance_m or cell_m may open the way)")
+            fields.append(field_)
+        return fields
+
     def _view(self, i: int, snapshot: Snapshot, previous_position: np.ndarray, *,
               crashed: bool) -> DroneView:
         end = self.scenario.task.end
@@ -283,6 +314,7 @@ class EpisodeRunner:
             reached_goal=_inside(snapshot.goals[i], position, end.goal_margin_m),
             out_of_workspace=end.out_of_workspace and not workspace.contains(position),
             step=self.step_count,
+            path_distance=None if self._paths[i] is None else self._paths[i].distance,
         )
 
     def _observe(self, view: DroneView) -> np.ndarray:

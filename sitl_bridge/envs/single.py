@@ -69,7 +69,8 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
 
     ## Rewards
     The sum of the terms in `task.reward`, each `scale * term`, logged by name in
-    `info["reward_terms"]`: `closer_to_goal` (metres gained toward the goal), `goal_reached`,
+    `info["reward_terms"]`: `closer_to_goal` (metres gained toward the goal, or along the
+    shortest obstacle-free path with `along: path`; envs/rewards.py), `goal_reached`,
     `per_step`, `near_obstacle` (lidar near flag), `crash`, `out_of_workspace`. The thesis's
     ratios: closer +10..+20, goal +500..+1000, step -5..-10, near -10..-50, crash -100..-500.
 

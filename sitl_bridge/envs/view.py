@@ -6,6 +6,7 @@ frame of the world file, so observations of several drones are comparable.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +56,9 @@ class DroneView:
     reached_goal: bool = False
     out_of_workspace: bool = False
     step: int = 0
+    path_distance: Callable[[np.ndarray], float] | None = None
+    """Length of the shortest obstacle-free path (m) from a point to this drone's goal region
+    (`envs/path_distance.py`), given when a reward term reads it (`closer_to_goal: {along: path}`)."""
 
     @property
     def distance_to_goal_m(self) -> float:
@@ -63,3 +67,17 @@ class DroneView:
     @property
     def previous_distance_to_goal_m(self) -> float:
         return float(np.linalg.norm(self.goal_enu_m - self.previous_position_enu_m))
+
+    @property
+    def path_distance_to_goal_m(self) -> float:
+        return self._along_path(self.position_enu_m)
+
+    @property
+    def previous_path_distance_to_goal_m(self) -> float:
+        return self._along_path(self.previous_position_enu_m)
+
+    def _along_path(self, position: np.ndarray) -> float:
+        if self.path_distance is None:
+            raise RuntimeError("this view has no path distance (the runner gives one when a reward "
+                               "term has `along: path`)")
+        return self.path_distance(position)

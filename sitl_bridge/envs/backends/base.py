@@ -35,7 +35,7 @@ from sitl_bridge.physics import VehicleState
 from sitl_bridge.physics.simulation import Simulation
 from sitl_bridge.physics.state import Collision
 from sitl_bridge.sensors.lidar import LidarScan
-from sitl_bridge.world import GoalPlacement
+from sitl_bridge.world import GoalPlacement, ObstaclePlacement
 
 
 @dataclass(frozen=True)
@@ -85,6 +85,9 @@ class Snapshot:
     hit_obstacle: tuple[bool, ...] | None = None
     """Per vehicle: a collision with something other than a vehicle since the last call (None:
     the backend does not tell, so every collision counts as one)."""
+    obstacles: tuple[ObstaclePlacement, ...] = ()
+    """The obstacles as placed this episode (randomised per the world; a mover's placement is
+    where its route is anchored, not where it is now)."""
 
 
 class CollisionFlags:

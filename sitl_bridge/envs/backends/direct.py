@@ -319,4 +319,5 @@ class DirectBackend:
             collided=tuple(self._collisions.any),
             hit_obstacle=tuple(self._collisions.obstacle),
             goals=goals,  # type: ignore[arg-type]  # load_scenario checks every vehicle has a goal
+            obstacles=layout.obstacles,
         )

@@ -264,4 +264,5 @@ class SessionBackend:
             collided=tuple(self._collisions.any),
             hit_obstacle=tuple(self._collisions.obstacle),
             goals=tuple(layout.goal_of(i) for i in range(self.num_drones)),  # type: ignore[arg-type]
+            obstacles=layout.obstacles,
         )
