@@ -96,7 +96,8 @@ def position_loop_dt(time_us: int, last_us: int, last_run_us: int, dt_s: float) 
     a clock that went back runs it too), and integrates the time that passed since (`dt_s`, this
     step's, after a reset). `last_us`: the previous step (-1: none)."""
     step_us = time_us - last_us if last_us >= 0 else 0
-    if last_run_us < 0 or time_us < last_run_us or 2 * (time_us - last_run_us) >= 2 * POSITION_CONTROL_PERIOD_US - step_us:
+    if (last_run_us < 0 or time_us < last_run_us
+            or 2 * (time_us - last_run_us) >= 2 * POSITION_CONTROL_PERIOD_US - step_us):
         return (time_us - last_run_us) * 1e-6 if last_run_us >= 0 and time_us > last_run_us else dt_s
     return -1.0
 
@@ -162,8 +163,8 @@ def steady_step(plan: np.ndarray, ctl: np.ndarray, pc_state: np.ndarray, pc_gain
         if yaw != yaw:
             yaw = quat_to_euler(q)[2]
         outer_loop(ctl, pc_state, pc_gains, pos_dt_s, (plan[PLAN_POS], plan[PLAN_POS + 1], plan[PLAN_POS + 2]),
-                   (plan[PLAN_VEL], plan[PLAN_VEL + 1], plan[PLAN_VEL + 2]), plan[PLAN_UP_MAX], plan[PLAN_DOWN_MAX], pos,
-                   vel, acc, False, yaw)
+                   (plan[PLAN_VEL], plan[PLAN_VEL + 1], plan[PLAN_VEL + 2]), plan[PLAN_UP_MAX],
+                   plan[PLAN_DOWN_MAX], pos, vel, acc, False, yaw)
     u0, u1, u2, u3 = inner_loop(ctl, att_gains, rate_state, rate_gains, mix_constants, mix_state, q, rates,
                                 plan[PLAN_YAW_RATE_FF], dt_s, False)
     return pos_dt_s >= 0.0, u0, u1, u2, u3

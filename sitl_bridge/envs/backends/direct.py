@@ -95,9 +95,9 @@ def sense_and_estimate(x: np.ndarray, imu_noise: np.ndarray, imu_row: int, mag_n
 @kernel(sense, estimator_imu_step, environment, inner_loop_kernel, stub_commander, vehicle_wrench)
 def vehicle_step(x: np.ndarray, imu_noise: np.ndarray, imu_row: int, mag_noise: np.ndarray, mag_row: int,
                  sense_constants: np.ndarray, est_state: np.ndarray, est_gains: np.ndarray, dt: float, time_us: int,
-                 baro_hpa: float, plan: np.ndarray, last_us: int, last_run_us: int, ctl: np.ndarray, pc_state: np.ndarray,
-                 pc_gains: np.ndarray, att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray,
-                 mix_constants: np.ndarray, mix_state: np.ndarray, rotor_constants: np.ndarray,
+                 baro_hpa: float, plan: np.ndarray, last_us: int, last_run_us: int, ctl: np.ndarray,
+                 pc_state: np.ndarray, pc_gains: np.ndarray, att_gains: np.ndarray, rate_state: np.ndarray,
+                 rate_gains: np.ndarray, mix_constants: np.ndarray, mix_state: np.ndarray, rotor_constants: np.ndarray,
                  rotor_speeds: np.ndarray) -> tuple:
     """A steady commander's whole step (module docstring): `sense_and_estimate` and the baro
     sample (`baro_hpa`, NaN: none) folded in as `SensorEstimator.finish` does, then, when
@@ -285,8 +285,8 @@ class DirectBackend:
                     if commander.steady and gps is None and ap.gains_current:
                         status, force, torque = vehicle_step(
                             x, imu.array, row, suite.mag_noise.array, mag_row, suite.constants, est_s, est_g, dt,
-                            time_us, _NAN if baro is None else baro.pressure_hpa, plan, *ap.clock_us(), ctl, pc_s, pc_g, att_g, rate_s, rate_g, mix_c, mix_s,
-                            rotor_k, speeds)
+                            time_us, _NAN if baro is None else baro.pressure_hpa, plan, *ap.clock_us(), ctl, pc_s,
+                            pc_g, att_g, rate_s, rate_g, mix_c, mix_s, rotor_k, speeds)
                         if status:
                             ap.flew_steady(time_us, status == 2)
                             stale[i] = True
