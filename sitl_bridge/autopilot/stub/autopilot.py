@@ -9,9 +9,10 @@ the compiled `outer_loop_kernel`), then the attitude + rate loops and the mixer 
 call (`inner_loop_kernel`, the `inner_loop` function that the fused `direct` loop compiles in
 too). The controllers' state lives in their float64 vectors (`sitl_bridge.jit`).
 
-Steady flight (`Commander.steady`): `steady_step` is `prepare`'s flying case and the inner loop
-on the commander's published `plan`, for a compiled per-step loop that tested `steady_flight`
-(the fused `direct` loop); `flew_steady` then records the step as `prepare` would have.
+Steady steps (`Commander.steady`): `steady_step` is `prepare`'s flying case and the inner loop
+on the commander's published `plan`, for a compiled per-step loop that found STEADY_FLY with
+`steady_output` (the fused `direct` loop, the stub's fused HIL step); `flew_steady` then
+records the step (flown, or STEADY_OFF: motors off) as `prepare` would have.
 """
 
 from __future__ import annotations
@@ -315,15 +316,17 @@ class StubAutopilot:
         last, last_run = self._last_time_us, self._position_last_us
         return -1 if last is None else last, -1 if last_run is None else last_run
 
-    def flew_steady(self, time_us: int, outer_ran: bool) -> None:
-        """Record a steady-flight step that a compiled loop ran (`steady_flight`, then
-        `steady_step` with `clock_us`, its outputs left in `control`), as `prepare` would."""
+    def flew_steady(self, time_us: int, outer_ran: bool, flying: bool = True) -> None:
+        """Record a steady step that a compiled loop ran, as `prepare` would: flown
+        (`steady_output` STEADY_FLY, then `steady_step` with `clock_us`, its outputs left in
+        `control`) or, not `flying`, disarmed (STEADY_OFF: nothing to do but the clock)."""
         self.commander.advance_clock(time_us)
         self._last_time_us = time_us
         self.steps += 1
-        if outer_ran:
-            self._position_last_us = time_us
-        self._command = None
+        if flying:
+            if outer_ran:
+                self._position_last_us = time_us
+            self._command = None
 
     def prepare(self, est: Estimate) -> float | None:
         """The commander and the position loop for this step's estimate. Returns the step (s)

@@ -4,12 +4,13 @@ Everything runs on simulated time (`time_us` of the sensor frames). Each step th
 turns the current mode into a `Setpoint` for the position controller and says whether the
 motors are off (disarmed), idling (armed on the ground) or flying.
 
-Steady flight (`steady`, `plan`): after a step that flew on in OFFBOARD (no yaw-rate
+Steady steps (`steady`, `plan`): after a step that flew on in OFFBOARD (no yaw-rate
 integration), AUTO.TAKEOFF or AUTO.LOITER with no ground contact suspected, the next steps
 change nothing but the clock as long as the offboard setpoint stays fresh, the takeoff
-altitude is not reached and no ground contact appears. The commander publishes that case as a
-float64 vector (`plan`) that a compiled per-step loop tests with `steady_flight` (the same
-predicates `step` uses); any command, and any step that does not fly on so, withdraws it.
+altitude is not reached and no ground contact appears; after a disarmed step, as long as the
+home needs no setting. The commander publishes that case as a float64 vector (`plan`) that a
+compiled per-step loop tests with `steady_output` (the same predicates `step` uses); any
+command, and any step that does not go on so, withdraws it.
 """
 
 from __future__ import annotations
@@ -86,11 +87,14 @@ _TAKEOFF_ACCEPT_M = 0.3  # takeoff done when this close to the target altitude
 
 # Commander.plan layout (float64): the setpoint flown (position, velocity, yaw, yaw-rate
 # feed-forward with NaN as 0, climb and descent limits), the mode (_PLAN_*), when the offboard
-# setpoint arrived (us) and COM_OF_LOSS_T, the takeoff altitude (NED z), LNDMC_Z/XY_VEL_MAX
+# setpoint arrived (us) and COM_OF_LOSS_T, the takeoff altitude (NED z), LNDMC_Z/XY_VEL_MAX, and
+# (disarmed) whether the home is still to be set
 (PLAN_POS, PLAN_VEL, PLAN_YAW, PLAN_YAW_RATE_FF, PLAN_UP_MAX, PLAN_DOWN_MAX, _PLAN_MODE, _OFFBOARD_US, _LOSS_S,
- _TAKEOFF_Z, _LND_Z_VEL, _LND_XY_VEL) = 0, 3, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15
-PLAN_SIZE = 16
-_PLAN_OFFBOARD, _PLAN_TAKEOFF, _PLAN_HOLD = 1.0, 2.0, 3.0
+ _TAKEOFF_Z, _LND_Z_VEL, _LND_XY_VEL, _HOME_MISSING) = 0, 3, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16
+PLAN_SIZE = 17
+_PLAN_OFFBOARD, _PLAN_TAKEOFF, _PLAN_HOLD, _PLAN_OFF = 1.0, 2.0, 3.0, 4.0
+# what `steady_output` finds
+NOT_STEADY, STEADY_FLY, STEADY_OFF = 0, 1, 2
 
 
 @dual
@@ -116,16 +120,22 @@ def ground_contact(sp_vz: float, sp_z: float, z: float, vn: float, ve: float, vd
 
 
 @dual
-def steady_flight(plan: np.ndarray, time_us: int, z: float, vn: float, ve: float, vd: float) -> bool:
-    """Whether `Commander.step` at `time_us`, with this estimate (NED z, velocity), flies on
-    with the published `plan` (module docstring), changing nothing but its clock."""
+def steady_output(plan: np.ndarray, time_us: int, z: float, vn: float, ve: float, vd: float,
+                  position_valid: bool) -> int:
+    """What `Commander.step` at `time_us` does with this estimate (NED z, velocity, whether the
+    position is valid) and the published `plan` (module docstring), changing nothing but its
+    clock: STEADY_FLY (flies on with the plan's setpoint) or STEADY_OFF (stays disarmed); or
+    NOT_STEADY when it has something to decide (then run it)."""
     mode = plan[_PLAN_MODE]
+    if mode == _PLAN_OFF:
+        return NOT_STEADY if plan[_HOME_MISSING] != 0.0 and position_valid else STEADY_OFF
     if mode == _PLAN_OFFBOARD and not offboard_fresh(time_us, int(plan[_OFFBOARD_US]), plan[_LOSS_S]):
-        return False
+        return NOT_STEADY
     if mode == _PLAN_TAKEOFF and takeoff_reached(z, plan[_TAKEOFF_Z]):
-        return False
-    return not ground_contact(plan[PLAN_VEL + 2], plan[PLAN_POS + 2], z, vn, ve, vd, plan[_LND_Z_VEL],
-                              plan[_LND_XY_VEL])
+        return NOT_STEADY
+    if ground_contact(plan[PLAN_VEL + 2], plan[PLAN_POS + 2], z, vn, ve, vd, plan[_LND_Z_VEL], plan[_LND_XY_VEL]):
+        return NOT_STEADY
+    return STEADY_FLY
 
 
 def _same_target(a: OffboardSetpoint, b: OffboardSetpoint) -> bool:
@@ -388,6 +398,9 @@ class Commander:
         if self.home is None and e.position_valid:
             self._set_home(e)
         if not self.armed:
+            self.plan[_PLAN_MODE] = _PLAN_OFF
+            self.plan[_HOME_MISSING] = 1.0 if self.home is None else 0.0
+            self.steady = True
             return Output.OFF, self._last_setpoint
         if self.main_mode == _OFFBOARD_MAIN and not self._offboard_fresh():  # only OFFBOARD can lose its signal
             self._offboard_failsafe()
@@ -436,7 +449,7 @@ class Commander:
         plan[:] = (*sp.position_ned_m, *sp.velocity_ned_m_s, sp.yaw_rad,
                    0.0 if yaw_rate_ff != yaw_rate_ff else yaw_rate_ff, sp.max_velocity_up_m_s,
                    sp.max_velocity_down_m_s, plan[_PLAN_MODE], self.offboard.time_us, p["COM_OF_LOSS_T"],
-                   self._takeoff_target[2], p["LNDMC_Z_VEL_MAX"], p["LNDMC_XY_VEL_MAX"])
+                   self._takeoff_target[2], p["LNDMC_Z_VEL_MAX"], p["LNDMC_XY_VEL_MAX"], 0.0)
         self.steady = True
 
     def _offboard_failsafe(self) -> None:

@@ -271,6 +271,13 @@ def baro_update(s: np.ndarray, pressure_hpa: float, time_us: int, dt: float) -> 
 
 
 @dual
+def position_valid(s: np.ndarray, time_us: int) -> bool:
+    """Whether the state's position counts at `time_us` (`Estimate.position_valid`): like EKF2,
+    only once the attitude has aligned and the origin is set."""
+    return time_us >= s[_ALIGN_UNTIL_US] and s[_HAS_ORIGIN] != 0.0
+
+
+@dual
 def attitude_and_rates(s: np.ndarray) -> tuple[Quat, Vec3]:
     """The estimator state's attitude and bias-corrected body rates (what the inner loop uses)."""
     return (s[_Q], s[_Q + 1], s[_Q + 2], s[_Q + 3]), (s[_RATES], s[_RATES + 1], s[_RATES + 2])

@@ -11,11 +11,11 @@ parser, struct decode, SensorFrame, `StubAutopilot.update`, struct pack, frame e
 * `actuator_frame`: the stub's `inner_loop` (attitude, rates, mixer) on the estimator state's
   attitude and rates (`attitude_and_rates`, as `direct`'s fused loop), then the
   HIL_ACTUATOR_CONTROLS frame, into a buffer that goes to the socket as it is.
-* in steady flight (`Commander.steady`), `steady_actuator_frame` instead of the commander and
-  position loop in Python and `actuator_frame`: the commander's `steady_flight` test, the stub's
-  `steady_step` (position loop when due, `inner_loop`), then the same frame (as `direct`'s
-  `vehicle_step`); when the commander has something to decide, it writes nothing and the step
-  goes on in Python as above.
+* in a steady step (`Commander.steady`), `steady_actuator_frame` instead of the commander and
+  position loop in Python and `actuator_frame`: the commander's `steady_output` test, the stub's
+  `steady_step` (position loop when due, `inner_loop`; motors off when disarmed), then the same
+  frame (as `direct`'s `vehicle_step`); when the commander has something to decide, it writes
+  nothing and the step goes on in Python as above.
 
 The same components as the per-message path, in the same order: the answers are the same bytes
 (tests/test_stub_hil_fused.py). Anything else (a split or extra frame, garbage, signing, another
@@ -54,8 +54,8 @@ from sitl_bridge.sensors import BaroSample, GpsSample
 from . import commander as commander_module
 from . import control, mixer, vec
 from .autopilot import inner_loop, inner_loop_kernel, steady_step
-from .commander import steady_flight
-from .estimator import attitude_and_rates, estimate_values, estimator_imu_step
+from .commander import NOT_STEADY, STEADY_OFF, steady_output
+from .estimator import attitude_and_rates, estimate_values, estimator_imu_step, position_valid
 
 if TYPE_CHECKING:
     from .autopilot import StubAutopilot
@@ -184,19 +184,23 @@ def steady_actuator_frame(
     est_state: np.ndarray,
     pc_state: np.ndarray,
     pc_gains: np.ndarray,
-) -> tuple[int, bool]:
+) -> tuple[int, bool, bool]:
     """A steady commander's step on this step's estimate (the estimator state, `finish` done):
-    when `steady_flight` holds, `steady_step` and the armed HIL_ACTUATOR_CONTROLS frame into
-    `out`; returns (the frame's length, whether the position loop ran), or (0, False) with
-    nothing changed when the commander must decide."""
+    when `steady_output` finds one, `steady_step` (or motors off) and the HIL_ACTUATOR_CONTROLS
+    frame into `out`; returns (the frame's length, whether the position loop ran, whether
+    flying), or (0, False, False) with nothing changed when the commander must decide."""
     q, rates, pos, vel, acc, _, _, _, _ = estimate_values(est_state, time_us)
-    if not steady_flight(plan, time_us, pos[2], vel[0], vel[1], vel[2]):
-        return 0, False
+    output = steady_output(plan, time_us, pos[2], vel[0], vel[1], vel[2], position_valid(est_state, time_us))
+    if output == NOT_STEADY:
+        return 0, False, False
+    if output == STEADY_OFF:
+        return actuator_message(out, scratch, sequence, system_id, component_id, time_us, False, 0.0, 0.0, 0.0,
+                                0.0), False, False
     outer_ran, u0, u1, u2, u3 = steady_step(plan, ctl, pc_state, pc_gains, att_gains, rate_state, rate_gains,
                                             mix_constants, mix_state, q, rates, pos, vel, acc, time_us, last_us,
                                             last_run_us)
     size = actuator_message(out, scratch, sequence, system_id, component_id, time_us, True, u0, u1, u2, u3)
-    return size, outer_ran
+    return size, outer_ran, True
 
 
 @dual
@@ -323,12 +327,12 @@ class FusedSensorStep:
         size = 0
         commander = ap.commander
         if commander.steady and ap.gains_current:
-            size, outer_ran = steady_actuator_frame(
+            size, outer_ran, flying = steady_actuator_frame(
                 self._out, self._scratch, sequence, *self._ids, time_us, commander.plan, *ap.clock_us(),
                 *self._operands(ap)
             )
             if size:
-                ap.flew_steady(time_us, outer_ran)
+                ap.flew_steady(time_us, outer_ran, flying)
         if not size:
             size = self._actuators(ap, e, sequence, time_us)
         client._send(self._view[:size])

@@ -14,11 +14,12 @@ ground-truth frame (`SensorSuite.truth_frame`: no sensor simulation, no noise) f
 `GroundTruthEstimator`, the same estimator the `stub` backend then runs on HIL_STATE_QUATERNION.
 
 Fused loop: per vehicle and step, compiled calls composed from the components' own kernels,
-with no frame or command objects. In steady flight (the commander's `steady`: OFFBOARD, takeoff
-or hold with nothing to decide; see `commander.steady_flight`) and with no baro or GPS sample
+with no frame or command objects. In a steady step (the commander's `steady`: OFFBOARD, takeoff
+or hold, or disarmed, with nothing to decide; see `commander.steady_output`) with no GPS sample
 due, one call, `vehicle_step`: the suite's IMU/mag `sense`, the estimator's
-`estimator_imu_step`, the commander's `steady_flight` test, the stub's `steady_step` (position
-loop when due, `inner_loop`) and the simulation's `vehicle_wrench`; the Python left is the
+`estimator_imu_step` and `baro_update`, the commander's `steady_output` test, the stub's
+`steady_step` (position loop when due, `inner_loop`; motors off when disarmed) and the
+simulation's `vehicle_wrench`; the Python left is the
 bookkeeping (`StubAutopilot.flew_steady`), and the estimate object is brought up to date
 (`SensorEstimator.refresh`) only when Python may read it (before `until`, at the end). When
 the commander has something to decide, `vehicle_step` stops after the estimator and the step
@@ -51,7 +52,7 @@ from sitl_bridge.autopilot.stub.autopilot import (
     inner_loop_kernel,
     steady_step,
 )
-from sitl_bridge.autopilot.stub.commander import steady_flight
+from sitl_bridge.autopilot.stub.commander import NOT_STEADY, STEADY_OFF, steady_output
 from sitl_bridge.autopilot.stub.estimator import (
     ESTIMATOR_STATE,
     GROUND_TRUTH_STATE,
@@ -60,6 +61,7 @@ from sitl_bridge.autopilot.stub.estimator import (
     current_values,
     estimate_values,
     estimator_imu_step,
+    position_valid,
     relative_estimate,
 )
 from sitl_bridge.autopilot.stub.modes import CommandResult, LandedState
@@ -101,16 +103,20 @@ def vehicle_step(x: np.ndarray, imu_noise: np.ndarray, imu_row: int, mag_noise: 
                  rotor_speeds: np.ndarray) -> tuple:
     """A steady commander's whole step (module docstring): `sense_and_estimate` and the baro
     sample (`baro_hpa`, NaN: none) folded in as `SensorEstimator.finish` does, then, when
-    `steady_flight` holds, `steady_step` and the rotors' world wrench. Returns (status, force,
-    torque): status 0 when the commander must decide (only the estimator ran), 1 flown, 2 flown
-    with the position loop."""
+    `steady_output` finds a steady step, `steady_step` (or motors off) and the rotors' world
+    wrench. Returns (status, force, torque): status 0 when the commander must decide (only the
+    estimator ran), 1 flown, 2 flown with the position loop, 3 disarmed."""
     a0, a1, a2, g0, g1, g2, m0, m1, m2 = sense(x, imu_noise, imu_row, mag_noise, mag_row, sense_constants)
     estimator_imu_step(est_state, est_gains, a0, a1, a2, g0, g1, g2, mag_row >= 0, m0, m1, m2, dt, time_us)
     if baro_hpa == baro_hpa:
         baro_update(est_state, baro_hpa, time_us, dt)
     q, rates, pos, vel, acc, _, _, _, _ = estimate_values(est_state, time_us)
-    if not steady_flight(plan, time_us, pos[2], vel[0], vel[1], vel[2]):
+    output = steady_output(plan, time_us, pos[2], vel[0], vel[1], vel[2], position_valid(est_state, time_us))
+    if output == NOT_STEADY:
         return 0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+    if output == STEADY_OFF:
+        force, torque = vehicle_wrench(x, rotor_constants, rotor_speeds, 0.0, 0.0, 0.0, 0.0, False)
+        return 3, force, torque
     outer_ran, u0, u1, u2, u3 = steady_step(plan, ctl, pc_state, pc_gains, att_gains, rate_state, rate_gains,
                                             mix_constants, mix_state, q, rates, pos, vel, acc, time_us, last_us,
                                             last_run_us)
@@ -288,7 +294,7 @@ class DirectBackend:
                             time_us, _NAN if baro is None else baro.pressure_hpa, plan, *ap.clock_us(), ctl, pc_s,
                             pc_g, att_g, rate_s, rate_g, mix_c, mix_s, rotor_k, speeds)
                         if status:
-                            ap.flew_steady(time_us, status == 2)
+                            ap.flew_steady(time_us, status == 2, status != 3)
                             stale[i] = True
                             push(i, force, torque)
                             continue
