@@ -19,16 +19,18 @@ or hold, or disarmed, with nothing to decide; see `commander.steady_output`) wit
 due, one call, `vehicle_step`: the suite's IMU/mag `sense`, the estimator's
 `estimator_imu_step` and `baro_update`, the commander's `steady_output` test, the stub's
 `steady_step` (position loop when due, `inner_loop`; motors off when disarmed) and the
-simulation's `vehicle_wrench`; the Python left is the
-bookkeeping (`StubAutopilot.flew_steady`), and the estimate object is brought up to date
-(`SensorEstimator.refresh`) only when Python may read it (before `until`, at the end). When
+simulation's `vehicle_wrench`; the Python left is the bookkeeping (`StubAutopilot.flew_steady`),
+and the estimate object is brought up to date (`SensorEstimator.refresh`) only when Python may
+read it (before `until`, at the end). When
 the commander has something to decide, `vehicle_step` stops after the estimator and the step
-goes on as below. Otherwise two calls: `sense_and_estimate` (`sense`, then
+goes on as below. With `ground_truth`, `truth_estimate` and `GroundTruthEstimator.finish`
+every step (the estimate stays current), then in a steady step `truth_vehicle_step` (the same
+tail, `steady_wrench`, on the truth). Otherwise two calls: `sense_and_estimate` (`sense`, then
 `estimator_imu_step`; with `ground_truth`, `truth_estimate`: the suite's `truth_of_vector`,
 then the ground-truth estimator's `relative_estimate`) and, after the Python commander and
 position loop (`StubAutopilot.prepare`), `control_and_rotors` (`inner_loop`, then
-`vehicle_wrench`). Baro and GPS (`SensorSuite.slow_samples`) and their estimator updates
-(`SensorEstimator.finish`) stay Python at their 50 / 5 Hz. The result is the same computation
+`vehicle_wrench`). Baro and GPS sampling (`SensorSuite.slow_samples`, 50 / 5 Hz) and the GPS
+estimator update (`SensorEstimator.finish`) stay Python. The result is the same computation
 as `StubAutopilot.update(SensorSuite.sample(...))` (or `truth_frame`) + `Simulation.step`, in
 the same order, bit for bit.
 
@@ -68,7 +70,7 @@ from sitl_bridge.autopilot.stub.modes import CommandResult, LandedState
 from sitl_bridge.autopilot.stub.params import ParamTable
 from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, CollisionFlags, Snapshot
 from sitl_bridge.envs.options import EnvOptions
-from sitl_bridge.jit import kernel
+from sitl_bridge.jit import dual, kernel
 from sitl_bridge.physics import MotorCommand, Simulation
 from sitl_bridge.physics.simulation import vehicle_wrench
 from sitl_bridge.sensors import SensorSuite, environment, sensor_seed
@@ -111,7 +113,35 @@ def vehicle_step(x: np.ndarray, imu_noise: np.ndarray, imu_row: int, mag_noise: 
     if baro_hpa == baro_hpa:
         baro_update(est_state, baro_hpa, time_us, dt)
     q, rates, pos, vel, acc, _, _, _, _ = estimate_values(est_state, time_us)
-    output = steady_output(plan, time_us, pos[2], vel[0], vel[1], vel[2], position_valid(est_state, time_us))
+    return steady_wrench(plan, time_us, q, rates, pos, vel, acc, position_valid(est_state, time_us), last_us,
+                         last_run_us, ctl, pc_state, pc_gains, att_gains, rate_state, rate_gains, mix_constants,
+                         mix_state, x, rotor_constants, rotor_speeds)
+
+
+@kernel(sense, estimator_imu_step, inner_loop_kernel, stub_commander, vehicle_wrench)
+def truth_vehicle_step(x: np.ndarray, origin: np.ndarray, time_us: int, plan: np.ndarray, last_us: int,
+                       last_run_us: int, ctl: np.ndarray, pc_state: np.ndarray, pc_gains: np.ndarray,
+                       att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray,
+                       mix_constants: np.ndarray, mix_state: np.ndarray, rotor_constants: np.ndarray,
+                       rotor_speeds: np.ndarray) -> tuple:
+    """`vehicle_step` with the ground-truth estimate (`truth_estimate`'s, the position valid),
+    after `GroundTruthEstimator.finish` has taken the same estimate: (status, force, torque)."""
+    q, rates, vel, acc, pos = truth_of_vector(x)
+    q, rates, pos, vel, acc, _, _, _ = relative_estimate(origin, q, rates, vel, acc, pos[0], pos[1], pos[2])
+    return steady_wrench(plan, time_us, q, rates, pos, vel, acc, True, last_us, last_run_us, ctl, pc_state,
+                         pc_gains, att_gains, rate_state, rate_gains, mix_constants, mix_state, x, rotor_constants,
+                         rotor_speeds)
+
+
+@dual
+def steady_wrench(plan: np.ndarray, time_us: int, q: tuple, rates: tuple, pos: tuple, vel: tuple, acc: tuple,
+                  pos_valid: bool, last_us: int, last_run_us: int, ctl: np.ndarray, pc_state: np.ndarray,
+                  pc_gains: np.ndarray, att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray,
+                  mix_constants: np.ndarray, mix_state: np.ndarray, x: np.ndarray, rotor_constants: np.ndarray,
+                  rotor_speeds: np.ndarray) -> tuple:
+    """The commander's `steady_output` on this step's estimate, then `steady_step` (or motors
+    off) and the rotors' world wrench: (status, force, torque), status as `vehicle_step`'s."""
+    output = steady_output(plan, time_us, pos[2], vel[0], vel[1], vel[2], pos_valid)
     if output == NOT_STEADY:
         return 0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
     if output == STEADY_OFF:
@@ -280,6 +310,14 @@ class DirectBackend:
                 if truth:
                     if est.has_origin:
                         e = est.finish(truth_estimate(x, est_s), time_us)
+                        if commander.steady and ap.gains_current:  # the estimate is up to date: no refresh
+                            status, force, torque = truth_vehicle_step(
+                                x, est_s, time_us, plan, *ap.clock_us(), ctl, pc_s, pc_g, att_g, rate_s, rate_g,
+                                mix_c, mix_s, rotor_k, speeds)
+                            if status:
+                                ap.flew_steady(time_us, status == 2, status != 3)
+                                push(i, force, torque)
+                                continue
                     else:  # the first step: the origin's geodetic position (Python, once)
                         e = est.update(suite.truth_frame(sim.state(i), time_us))
                 else:
@@ -352,6 +390,8 @@ class DirectBackend:
         vehicle_step(x.copy(), noise, 0, noise[:, :3].copy(), -1, suite.constants, scratch.copy(),
                      np.zeros_like(est_g) if truth else est_g, 0.004, 4000, 1000.0, scratch_plan, -1, -1, ctl.copy(),
                      pc_s.copy(), pc_g, att_g, rate_s.copy(), rate_g, mix_c, mix_s.copy(), rotor_k, speeds.copy())
+        truth_vehicle_step(x.copy(), np.ones(GROUND_TRUTH_STATE), 4000, scratch_plan, -1, -1, ctl.copy(), pc_s.copy(),
+                           pc_g, att_g, rate_s.copy(), rate_g, mix_c, mix_s.copy(), rotor_k, speeds.copy())
         current_values(scratch, 4000)
 
     # -- episode start: the same sequence the `stub` backend sends through MAVSDK -------------
