@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import math
 
+from sitl_bridge.jit import dual
 from sitl_bridge.world.schema import GeoHome
 
 SEA_LEVEL_PRESSURE_PA = 101_325.0
@@ -26,6 +27,7 @@ def isa_pressure_pa(altitude_amsl_m: float) -> float:
     return SEA_LEVEL_PRESSURE_PA / (SEA_LEVEL_TEMPERATURE_K / temperature) ** PRESSURE_EXPONENT
 
 
+@dual
 def pressure_altitude_m(pressure_pa: float) -> float:
     """Altitude (m AMSL) at which the ISA pressure equals `pressure_pa` (inverse of isa_pressure_pa)."""
     ratio = (SEA_LEVEL_PRESSURE_PA / pressure_pa) ** (1.0 / PRESSURE_EXPONENT)

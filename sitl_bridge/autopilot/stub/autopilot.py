@@ -8,6 +8,11 @@ Per step: the estimator, then `prepare` (commander, and the position loop at ~12
 the compiled `outer_loop_kernel`), then the attitude + rate loops and the mixer in one compiled
 call (`inner_loop_kernel`, the `inner_loop` function that the fused `direct` loop compiles in
 too). The controllers' state lives in their float64 vectors (`sitl_bridge.jit`).
+
+Steady steps (`Commander.steady`): `steady_step` is `prepare`'s flying case and the inner loop
+on the commander's published `plan`, for a compiled per-step loop that found STEADY_FLY with
+`steady_output` (the fused `direct` loop, the stub's fused HIL step); `flew_steady` then
+records the step (flown, or STEADY_OFF: motors off) as `prepare` would have.
 """
 
 from __future__ import annotations
@@ -24,7 +29,18 @@ from sitl_bridge.physics.simulation import MotorCommand
 from sitl_bridge.physics.state import armed_command
 
 from . import control, mixer, vec
-from .commander import Commander, Home, OffboardSetpoint, Output
+from .commander import (
+    PLAN_DOWN_MAX,
+    PLAN_POS,
+    PLAN_UP_MAX,
+    PLAN_VEL,
+    PLAN_YAW,
+    PLAN_YAW_RATE_FF,
+    Commander,
+    Home,
+    OffboardSetpoint,
+    Output,
+)
 from .control import (
     AttitudeControl,
     PositionControl,
@@ -46,6 +62,7 @@ from .estimator import (
 from .mixer import QuadGeometry, QuadXMixer, mix
 from .modes import CommandResult, LandedState, system_id_for
 from .params import ParamTable
+from .vec import quat_to_euler
 
 if TYPE_CHECKING:
     from sitl_bridge.sensors import SensorFrame
@@ -65,6 +82,25 @@ _FLY = Output.FLY
 # StubAutopilot.control layout: collective thrust, attitude setpoint (w, x, y, z), motor outputs
 _THRUST, _Q_SP, _OUTPUTS = 0, 1, 5
 CONTROL_STATE = 9
+
+
+@dual
+def seconds_since(time_us: int, last_us: int) -> float:
+    """Seconds from the previous step at `last_us` (-1: none) to `time_us`; 0 when none or not later."""
+    return 0.0 if last_us < 0 or time_us <= last_us else (time_us - last_us) * 1e-6
+
+
+@dual
+def position_loop_dt(time_us: int, last_us: int, last_run_us: int, dt_s: float) -> float:
+    """The position loop's step (s) when it runs at `time_us`, else -1.0: it runs on the step
+    nearest to each POSITION_CONTROL_PERIOD_US after its last run at `last_run_us` (-1: never;
+    a clock that went back runs it too), and integrates the time that passed since (`dt_s`, this
+    step's, after a reset). `last_us`: the previous step (-1: none)."""
+    step_us = time_us - last_us if last_us >= 0 else 0
+    if (last_run_us < 0 or time_us < last_run_us
+            or 2 * (time_us - last_run_us) >= 2 * POSITION_CONTROL_PERIOD_US - step_us):
+        return (time_us - last_run_us) * 1e-6 if last_run_us >= 0 and time_us > last_run_us else dt_s
+    return -1.0
 
 
 @dual
@@ -112,6 +148,27 @@ def inner_loop_kernel(ctl: np.ndarray, att_gains: np.ndarray, rate_state: np.nda
     """`inner_loop`, compiled."""
     return inner_loop(ctl, att_gains, rate_state, rate_gains, mix_constants, mix_state, (qw, qx, qy, qz),
                       (wx, wy, wz), yaw_rate_ff, dt_s, landed)
+
+
+@dual
+def steady_step(plan: np.ndarray, ctl: np.ndarray, pc_state: np.ndarray, pc_gains: np.ndarray,
+                att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray, mix_constants: np.ndarray,
+                mix_state: np.ndarray, q: tuple, rates: tuple, pos: tuple, vel: tuple, acc: tuple, time_us: int,
+                last_us: int, last_run_us: int) -> tuple[bool, float, float, float, float]:
+    """`prepare`'s flying case on a steady commander's `plan` (its setpoint; no landing
+    suspected), then `inner_loop`: (whether the position loop ran, the motor outputs)."""
+    dt_s = seconds_since(time_us, last_us)
+    pos_dt_s = position_loop_dt(time_us, last_us, last_run_us, dt_s)
+    if pos_dt_s >= 0.0:
+        yaw = plan[PLAN_YAW]
+        if yaw != yaw:
+            yaw = quat_to_euler(q)[2]
+        outer_loop(ctl, pc_state, pc_gains, pos_dt_s, (plan[PLAN_POS], plan[PLAN_POS + 1], plan[PLAN_POS + 2]),
+                   (plan[PLAN_VEL], plan[PLAN_VEL + 1], plan[PLAN_VEL + 2]), plan[PLAN_UP_MAX],
+                   plan[PLAN_DOWN_MAX], pos, vel, acc, False, yaw)
+    u0, u1, u2, u3 = inner_loop(ctl, att_gains, rate_state, rate_gains, mix_constants, mix_state, q, rates,
+                                plan[PLAN_YAW_RATE_FF], dt_s, False)
+    return pos_dt_s >= 0.0, u0, u1, u2, u3
 
 
 class StubAutopilot:
@@ -214,6 +271,11 @@ class StubAutopilot:
         """Attitude setpoint (w, x, y, z; NED/FRD) of the position loop."""
         return tuple(self.control[_Q_SP:_Q_SP + 4].tolist())  # type: ignore[return-value]
 
+    @property
+    def gains_current(self) -> bool:
+        """Whether the gain vectors are those of the current parameters (else `prepare` reloads them)."""
+        return self._gains_version == self.params.version
+
     def refresh_gains(self) -> None:
         """Reload the controllers' gain vectors if a parameter changed (cheap when none did)."""
         if self._gains_version != self.params.version:
@@ -249,13 +311,31 @@ class StubAutopilot:
         `inner_loop` (the fused `direct` loop): `last_command` reads them from `control`."""
         self._command = None
 
+    def clock_us(self) -> tuple[int, int]:
+        """(the last step's time, the position loop's last run) in us, -1 for none (`steady_step`)."""
+        last, last_run = self._last_time_us, self._position_last_us
+        return -1 if last is None else last, -1 if last_run is None else last_run
+
+    def flew_steady(self, time_us: int, outer_ran: bool, flying: bool = True) -> None:
+        """Record a steady step that a compiled loop ran, as `prepare` would: flown
+        (`steady_output` STEADY_FLY, then `steady_step` with `clock_us`, its outputs left in
+        `control`) or, not `flying`, disarmed (STEADY_OFF: nothing to do but the clock)."""
+        self.commander.advance_clock(time_us)
+        self._last_time_us = time_us
+        self.steps += 1
+        if flying:
+            if outer_ran:
+                self._position_last_us = time_us
+            self._command = None
+
     def prepare(self, est: Estimate) -> float | None:
         """The commander and the position loop for this step's estimate. Returns the step (s)
         when the inner loop must run (`inner_loop`, with `yaw_rate_ff`), or None when the
         motors are off or idle (`last_command` is then set)."""
         time_us = est.time_us
         last = self._last_time_us
-        dt_s = 0.0 if last is None or time_us <= last else (time_us - last) * 1e-6
+        last_us = -1 if last is None else last
+        dt_s = seconds_since(time_us, last_us)
         self._last_time_us = time_us
         self.steps += 1
         if self._gains_version != self.params.version:
@@ -271,11 +351,9 @@ class StubAutopilot:
             return None
 
         last_run = self._position_last_us
-        step_us = time_us - last if last is not None else 0
-        if (last_run is None or time_us < last_run
-                or 2 * (time_us - last_run) >= 2 * POSITION_CONTROL_PERIOD_US - step_us):
-            # the outer loop runs at ~125 Hz like PX4's mc_pos_control on EKF2 output
-            pos_dt_s = (time_us - last_run) * 1e-6 if last_run is not None and time_us > last_run else dt_s
+        # the outer loop runs at ~125 Hz like PX4's mc_pos_control on EKF2 output
+        pos_dt_s = position_loop_dt(time_us, last_us, -1 if last_run is None else last_run, dt_s)
+        if pos_dt_s >= 0.0:
             self._position_last_us = time_us
             self._outer_loop(est, sp, pos_dt_s)
         yaw_rate_ff = sp.yaw_rate_rad_s

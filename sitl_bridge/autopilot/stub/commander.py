@@ -3,6 +3,14 @@
 Everything runs on simulated time (`time_us` of the sensor frames). Each step the commander
 turns the current mode into a `Setpoint` for the position controller and says whether the
 motors are off (disarmed), idling (armed on the ground) or flying.
+
+Steady steps (`steady`, `plan`): after a step that flew on in OFFBOARD (no yaw-rate
+integration), AUTO.TAKEOFF or AUTO.LOITER with no ground contact suspected, the next steps
+change nothing but the clock as long as the offboard setpoint stays fresh, the takeoff
+altitude is not reached and no ground contact appears; after a disarmed step, as long as the
+home needs no setting. The commander publishes that case as a float64 vector (`plan`) that a
+compiled per-step loop tests with `steady_output` (the same predicates `step` uses); any
+command, and any step that does not go on so, withdraws it.
 """
 
 from __future__ import annotations
@@ -12,6 +20,10 @@ import math
 from collections import deque
 from dataclasses import dataclass
 from enum import Enum
+
+import numpy as np
+
+from sitl_bridge.jit import dual
 
 from .control import Setpoint
 from .estimator import Estimate
@@ -71,6 +83,69 @@ class OffboardSetpoint:
 # neither NaN nor infinite; the C function, as it is called several times per step
 _finite = math.isfinite
 
+_TAKEOFF_ACCEPT_M = 0.3  # takeoff done when this close to the target altitude
+
+# Commander.plan layout (float64): the setpoint flown (position, velocity, yaw, yaw-rate
+# feed-forward with NaN as 0, climb and descent limits), the mode (_PLAN_*), when the offboard
+# setpoint arrived (us) and COM_OF_LOSS_T, the takeoff altitude (NED z), LNDMC_Z/XY_VEL_MAX, and
+# (disarmed) whether the home is still to be set
+(PLAN_POS, PLAN_VEL, PLAN_YAW, PLAN_YAW_RATE_FF, PLAN_UP_MAX, PLAN_DOWN_MAX, _PLAN_MODE, _OFFBOARD_US, _LOSS_S,
+ _TAKEOFF_Z, _LND_Z_VEL, _LND_XY_VEL, _HOME_MISSING) = 0, 3, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16
+PLAN_SIZE = 17
+_PLAN_OFFBOARD, _PLAN_TAKEOFF, _PLAN_HOLD, _PLAN_OFF = 1.0, 2.0, 3.0, 4.0
+# what `steady_output` finds
+NOT_STEADY, STEADY_FLY, STEADY_OFF = 0, 1, 2
+
+
+@dual
+def offboard_fresh(time_us: int, sent_us: int, loss_s: float) -> bool:
+    """Whether an offboard setpoint sent at `sent_us` (-1: none) still counts at `time_us`."""
+    return sent_us >= 0 and time_us - sent_us <= loss_s * 1e6
+
+
+@dual
+def takeoff_reached(z_ned_m: float, target_z_ned_m: float) -> bool:
+    """Whether AUTO.TAKEOFF has reached its altitude (then AUTO.LOITER)."""
+    return abs(z_ned_m - target_z_ned_m) < _TAKEOFF_ACCEPT_M
+
+
+@dual
+def ground_contact(sp_vz: float, sp_z: float, z: float, vn: float, ve: float, vd: float, vz_limit: float,
+                   xy_limit: float) -> bool:
+    """The land detector's first stage: a descent commanded (setpoint NED z velocity or
+    position) and no vertical or horizontal motion to speak of."""
+    descend_commanded = (_finite(sp_vz) and sp_vz > 0.3 * vz_limit) or (_finite(sp_z) and sp_z > z + 0.5)
+    # no motion test unless a descent is commanded (the common case in flight: one test)
+    return descend_commanded and abs(vd) < 0.6 * vz_limit and math.sqrt(vn * vn + ve * ve) < xy_limit
+
+
+@dual
+def steady_output(plan: np.ndarray, time_us: int, z: float, vn: float, ve: float, vd: float,
+                  position_valid: bool) -> int:
+    """What `Commander.step` at `time_us` does with this estimate (NED z, velocity, whether the
+    position is valid) and the published `plan` (module docstring), changing nothing but its
+    clock: STEADY_FLY (flies on with the plan's setpoint) or STEADY_OFF (stays disarmed); or
+    NOT_STEADY when it has something to decide (then run it)."""
+    mode = plan[_PLAN_MODE]
+    if mode == _PLAN_OFF:
+        return NOT_STEADY if plan[_HOME_MISSING] != 0.0 and position_valid else STEADY_OFF
+    if mode == _PLAN_OFFBOARD and not offboard_fresh(time_us, int(plan[_OFFBOARD_US]), plan[_LOSS_S]):
+        return NOT_STEADY
+    if mode == _PLAN_TAKEOFF and takeoff_reached(z, plan[_TAKEOFF_Z]):
+        return NOT_STEADY
+    if ground_contact(plan[PLAN_VEL + 2], plan[PLAN_POS + 2], z, vn, ve, vd, plan[_LND_Z_VEL], plan[_LND_XY_VEL]):
+        return NOT_STEADY
+    return STEADY_FLY
+
+
+def _same_target(a: OffboardSetpoint, b: OffboardSetpoint) -> bool:
+    """Whether two offboard setpoints ask for the same (NaN equals NaN: not controlled)."""
+    for x, y in zip((*a.position_ned_m, *a.velocity_ned_m_s, a.yaw_rad, a.yaw_rate_rad_s),
+                    (*b.position_ned_m, *b.velocity_ned_m_s, b.yaw_rad, b.yaw_rate_rad_s), strict=True):
+        if x != y and (x == x or y == y):
+            return False
+    return True
+
 
 def _nan_if_not_finite(x: float) -> float:
     """Setpoint components are finite or NaN (= not controlled); inf would poison the control."""
@@ -83,7 +158,6 @@ class Commander:
 
     # ground contact / landed: each stage must hold this fraction of LNDMC_TRIG_TIME
     _LAND_STAGE_FRACTION = 1.0 / 3.0
-    _TAKEOFF_ACCEPT_M = 0.3      # takeoff done when this close to the target altitude
     _RTL_ACCEPT_M = 1.0
     _AIRBORNE_CLIMB_M = 0.3      # climbed this far above the ground point: in the air
 
@@ -117,6 +191,9 @@ class Commander:
         # offboard message and the yaw are the same (a new one only at the 20 Hz resends)
         self._offboard_sp: tuple[OffboardSetpoint, float, Setpoint] | None = None
         self._dt_s = 0.0
+        self.plan = np.zeros(PLAN_SIZE)
+        """Steady flight, published for compiled loops (module docstring); valid while `steady`."""
+        self.steady = False
 
     # --- state as MAVLink sees it --------------------------------------------------------
     @property
@@ -152,6 +229,7 @@ class Commander:
         if (self.main_mode, self.sub_mode) == OFFBOARD and not self._offboard_fresh():
             self._text(4, "Arming denied: no offboard signal")
             return CommandResult.DENIED
+        self.steady = False
         self.armed = True
         self._arm_time_us = self.time_us
         self._flown_since_arming = False
@@ -249,22 +327,26 @@ class Commander:
 
     def set_offboard_setpoint(self, position_ned_m: Vec3 = _NAN3, velocity_ned_m_s: Vec3 = _NAN3,
                               yaw_rad: float = _NAN, yaw_rate_rad_s: float = _NAN) -> None:
-        """Store an offboard setpoint (NaN components are not controlled), stamped with sim time."""
-        self.offboard = OffboardSetpoint(
+        """Store an offboard setpoint (NaN components are not controlled), stamped with sim time.
+        A resend of the setpoint flown in steady OFFBOARD flight only moves the plan's deadline."""
+        new = OffboardSetpoint(
             tuple(_nan_if_not_finite(x) for x in position_ned_m),  # type: ignore[arg-type]
             tuple(_nan_if_not_finite(x) for x in velocity_ned_m_s),  # type: ignore[arg-type]
             _nan_if_not_finite(yaw_rad), _nan_if_not_finite(yaw_rate_rad_s), self.time_us,
         )
+        if self.steady and self.plan[_PLAN_MODE] == _PLAN_OFFBOARD and _same_target(new, self.offboard):
+            self.plan[_OFFBOARD_US] = new.time_us
+        else:
+            self.steady = False
+        self.offboard = new
 
     def _offboard_fresh(self) -> bool:
-        sp = self.offboard
-        if sp.time_us < 0:
-            return False
-        return self.time_us - sp.time_us <= self.params.values["COM_OF_LOSS_T"] * 1e6
+        return offboard_fresh(self.time_us, self.offboard.time_us, self.params.values["COM_OF_LOSS_T"])
 
     # --- mode entry ------------------------------------------------------------------------
     def _enter(self, mode: tuple[int, int]) -> None:
         e = self.estimate
+        self.steady = False
         previous = (self.main_mode, self.sub_mode)
         self.main_mode, self.sub_mode = int(mode[0]), int(mode[1])
         self.failsafe_active = False   # a failsafe sets it again right after entering its mode
@@ -296,20 +378,29 @@ class Commander:
         self.home = Home(e.lat_deg, e.lon_deg, e.alt_amsl_m, e.position_ned_m, quat_yaw(e.quaternion_ned_frd))
 
     def _disarm(self, reason: str) -> None:
+        self.steady = False
         self.armed = False
         self.landed = True
         self.ground_contact = self.maybe_landed = False
         self._text(6, f"Disarmed by {reason}")
 
     # --- per step ----------------------------------------------------------------------------
+    def advance_clock(self, time_us: int) -> None:
+        """The commander's clock to `time_us` (a step, or a steady-flight step run elsewhere)."""
+        self._dt_s = max(0, time_us - self.time_us) * 1e-6 if self.estimate is not None else 0.0
+        self.time_us = time_us
+
     def step(self, e: Estimate, thrust_collective: float) -> tuple[Output, Setpoint]:
         """Advance the state machine to e.time_us; returns what the motors do and the setpoint."""
-        self._dt_s = max(0, e.time_us - self.time_us) * 1e-6 if self.estimate is not None else 0.0
-        self.time_us = e.time_us
+        self.steady = False
+        self.advance_clock(e.time_us)
         self.estimate = e
         if self.home is None and e.position_valid:
             self._set_home(e)
         if not self.armed:
+            self.plan[_PLAN_MODE] = _PLAN_OFF
+            self.plan[_HOME_MISSING] = 1.0 if self.home is None else 0.0
+            self.steady = True
             return Output.OFF, self._last_setpoint
         if self.main_mode == _OFFBOARD_MAIN and not self._offboard_fresh():  # only OFFBOARD can lose its signal
             self._offboard_failsafe()
@@ -334,7 +425,32 @@ class Commander:
             self._ground_z_m = e.position_ned_m[2]
             self._text(6, "Landing detected")
             return Output.IDLE, sp
+        if self._contact_since_us is None:  # no ground contact suspected (maybe_landed neither)
+            self._publish(sp)
         return Output.FLY, sp
+
+    def _publish(self, sp: Setpoint) -> None:
+        """Publish the steady flight of this step's mode and setpoint, when it is one (`plan`)."""
+        mode = (self.main_mode, self.sub_mode)
+        plan = self.plan
+        if mode == OFFBOARD:
+            o = self.offboard
+            if not _finite(o.yaw_rad) and _finite(o.yaw_rate_rad_s):
+                return  # the yaw setpoint integrates the rate every step
+            plan[_PLAN_MODE] = _PLAN_OFFBOARD
+        elif mode == HOLD:
+            plan[_PLAN_MODE] = _PLAN_HOLD
+        elif mode == TAKEOFF:
+            plan[_PLAN_MODE] = _PLAN_TAKEOFF
+        else:
+            return
+        p = self.params.values
+        yaw_rate_ff = sp.yaw_rate_rad_s
+        plan[:] = (*sp.position_ned_m, *sp.velocity_ned_m_s, sp.yaw_rad,
+                   0.0 if yaw_rate_ff != yaw_rate_ff else yaw_rate_ff, sp.max_velocity_up_m_s,
+                   sp.max_velocity_down_m_s, plan[_PLAN_MODE], self.offboard.time_us, p["COM_OF_LOSS_T"],
+                   self._takeoff_target[2], p["LNDMC_Z_VEL_MAX"], p["LNDMC_XY_VEL_MAX"], 0.0)
+        self.steady = True
 
     def _offboard_failsafe(self) -> None:
         if (self.main_mode, self.sub_mode) != OFFBOARD or self._offboard_fresh():
@@ -374,14 +490,9 @@ class Commander:
         (thrust forced low, still no motion), then landed; each stage a third of LNDMC_TRIG_TIME."""
         p = self.params.values
         stage_us = p["LNDMC_TRIG_TIME"] * self._LAND_STAGE_FRACTION * 1e6
-        vz_limit = p["LNDMC_Z_VEL_MAX"]
         v = e.velocity_ned_m_s
-        descend_commanded = _finite(sp.velocity_ned_m_s[2]) and sp.velocity_ned_m_s[2] > 0.3 * vz_limit \
-            or (_finite(sp.position_ned_m[2]) and sp.position_ned_m[2] > e.position_ned_m[2] + 0.5)
-        # no motion test unless a descent is commanded (the common case in flight: one test)
-        contact = descend_commanded and abs(v[2]) < 0.6 * vz_limit \
-            and math.hypot(v[0], v[1]) < p["LNDMC_XY_VEL_MAX"]
-        if not contact:
+        if not ground_contact(sp.velocity_ned_m_s[2], sp.position_ned_m[2], e.position_ned_m[2], v[0], v[1], v[2],
+                              p["LNDMC_Z_VEL_MAX"], p["LNDMC_XY_VEL_MAX"]):
             self.ground_contact = self.maybe_landed = False
             self._contact_since_us = self._maybe_since_us = None
             return
@@ -417,7 +528,7 @@ class Commander:
             return sp
         if mode == TAKEOFF:
             t = self._takeoff_target
-            if abs(e.position_ned_m[2] - t[2]) < self._TAKEOFF_ACCEPT_M and not self.landed:
+            if takeoff_reached(e.position_ned_m[2], t[2]) and not self.landed:
                 self._enter(HOLD)
                 self._hold_position = t
                 return Setpoint(t, _NAN3, self._yaw_sp)

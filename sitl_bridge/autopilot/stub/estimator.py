@@ -170,10 +170,14 @@ class GroundTruthEstimator:
 
 # SensorEstimator.state layout (float64): attitude, gyro bias, position, velocity, accelerometer
 # bias (NED), low-passed kinematic acceleration, GPS-derived acceleration, bias-corrected rates,
-# declination, end of the alignment (us; NaN before the first step), flags, the origin
+# declination, end of the alignment (us; NaN before the first step), flags, the origin; the
+# baro's zero (baro altitude at local z = 0), its last sample's time (us) and altitude (NaN: none)
 _Q, _GYRO_BIAS, _POS, _VEL, _ACC_BIAS, _ACCEL_LP, _GPS_ACCEL, _RATES = 0, 4, 7, 10, 13, 16, 19, 22
 _DECLINATION, _ALIGN_UNTIL_US, _HAS_Q, _HAS_ORIGIN, _ORIGIN, _LON_RADIUS = 25, 26, 27, 28, 29, 32
-ESTIMATOR_STATE = 33
+_BARO_OFFSET, _LAST_BARO_US, _LAST_BARO_ALT = 33, 34, 35
+ESTIMATOR_STATE = 36
+BARO_GAIN_PER_S = 2.0          # 1/s pull of the height to the baro height
+BARO_VEL_GAIN_PER_S = 0.5
 # SensorEstimator.gains layout
 _ACC_KP, _MAG_KP, _GYRO_BIAS_KI, _ALIGN_BOOST, _ALIGN_S = range(5)
 
@@ -225,8 +229,52 @@ def estimator_imu_step(s: np.ndarray, k: np.ndarray, ax: float, ay: float, az: f
     s[lp] += 0.2 * (an - s[lp])
     s[lp + 1] += 0.2 * (ae - s[lp + 1])
     s[lp + 2] += 0.2 * (ad - s[lp + 2])
-    return (q, (w0, w1, w2), (s[_POS], s[_POS + 1], s[_POS + 2]), (s[_VEL], s[_VEL + 1], s[_VEL + 2]),
+    return estimate_values(s, time_us)
+
+
+@dual
+def estimate_values(s: np.ndarray, time_us: int) -> tuple[Quat, Vec3, Vec3, Vec3, Vec3, float, float, float, bool]:
+    """The estimate that the state `s` holds at `time_us`, as `estimator_imu_step` returns it:
+    (attitude, rates, position, velocity, acceleration, lat, lon, alt AMSL, alignment over)."""
+    lp = _ACCEL_LP
+    return ((s[_Q], s[_Q + 1], s[_Q + 2], s[_Q + 3]), (s[_RATES], s[_RATES + 1], s[_RATES + 2]),
+            (s[_POS], s[_POS + 1], s[_POS + 2]), (s[_VEL], s[_VEL + 1], s[_VEL + 2]),
             (s[lp], s[lp + 1], s[lp + 2])) + geodetic(s) + (time_us >= s[_ALIGN_UNTIL_US],)  # NaN: False
+
+
+@kernel(frames, vec)
+def current_values(s: np.ndarray, time_us: int) -> tuple[Quat, Vec3, Vec3, Vec3, Vec3, float, float, float, bool]:
+    """`estimate_values`, compiled (for callers that stepped the state in a kernel of their own)."""
+    return estimate_values(s, time_us)
+
+
+@dual
+def baro_update(s: np.ndarray, pressure_hpa: float, time_us: int, dt: float) -> None:
+    """A barometer sample (hPa) folded into the state `s` (no-op before the origin or without
+    time passing). PX4 ignores HIL_SENSOR.pressure_alt: height comes from the pressure itself;
+    the first sample sets the baro's zero, the next ones pull the height and vertical velocity."""
+    if s[_HAS_ORIGIN] == 0.0 or not dt > 0.0:
+        return
+    pressure_alt_m = pressure_altitude_m(pressure_hpa * 100.0)
+    last = s[_LAST_BARO_US]
+    s[_LAST_BARO_US] = time_us
+    s[_LAST_BARO_ALT] = pressure_alt_m
+    z = s[_POS + 2]
+    offset = s[_BARO_OFFSET]
+    if offset != offset or last != last:
+        s[_BARO_OFFSET] = pressure_alt_m + z   # baro alt at local z = 0
+        return
+    dt_baro = min(max(time_us - last, 0.0) * 1e-6, 0.5)
+    ez = (offset - pressure_alt_m) - z
+    s[_POS + 2] = z + min(1.0, BARO_GAIN_PER_S * dt_baro) * ez
+    s[_VEL + 2] += min(1.0, BARO_VEL_GAIN_PER_S * dt_baro) * ez
+
+
+@dual
+def position_valid(s: np.ndarray, time_us: int) -> bool:
+    """Whether the state's position counts at `time_us` (`Estimate.position_valid`): like EKF2,
+    only once the attitude has aligned and the origin is set."""
+    return time_us >= s[_ALIGN_UNTIL_US] and s[_HAS_ORIGIN] != 0.0
 
 
 @dual
@@ -296,8 +344,10 @@ class SensorEstimator:
     """Complementary attitude filter + GPS/baro/accelerometer position filter.
 
     The per-step part (attitude filter, accelerometer prediction) is the compiled kernel
-    `estimator_imu_step` on the float64 `state` vector; the GPS and baro corrections (5 Hz,
-    50 Hz) are Python on the same vector (`finish`). The fused `direct` loop calls both."""
+    `estimator_imu_step` on the float64 `state` vector; the baro correction (50 Hz) is the
+    `@dual` `baro_update` on the same vector and the GPS correction (5 Hz) Python (`finish`
+    calls both). The fused `direct` loop compiles the per-step part and the baro correction
+    into its own step (`estimate_values` then reads the estimate off the state; `refresh`)."""
 
     # attitude: proportional / integral correction gains (1/s, 1/s^2)
     ACC_KP = 0.4
@@ -311,8 +361,6 @@ class SensorEstimator:
     GPS_VEL_GAIN = 0.35
     GPS_POS_TO_VEL = 0.1
     ACC_BIAS_GAIN = 0.02
-    BARO_GAIN_PER_S = 2.0          # 1/s pull of the height to the baro height
-    BARO_VEL_GAIN_PER_S = 0.5
     BARO_OFFSET_SAMPLES = 25       # GPS samples averaged for the baro-to-GPS height offset,
     BARO_OFFSET_GAIN = 0.01        # then tracked slowly (baro drift)
     MIN_GPS_FIX = 3
@@ -327,13 +375,11 @@ class SensorEstimator:
         self.state[:] = 0.0
         self.state[_ALIGN_UNTIL_US] = math.nan
         self.state[_LON_RADIUS] = EARTH_RADIUS_M
+        self.state[_BARO_OFFSET:_LAST_BARO_ALT + 1] = math.nan
         g = self.gains
         g[_ACC_KP], g[_MAG_KP], g[_GYRO_BIAS_KI] = self.ACC_KP, self.MAG_KP, self.GYRO_BIAS_KI
         g[_ALIGN_BOOST], g[_ALIGN_S] = self.ALIGN_BOOST, self.align_s
         self.last_time_us: int | None = None
-        self._baro_offset_m: float | None = None   # baro altitude - GPS altitude at origin
-        self._last_baro_us: int | None = None
-        self._last_baro_alt_m: float | None = None
         self._baro_offset_samples = 0
         self._last_gps: tuple[int, Vec3] | None = None
 
@@ -375,6 +421,12 @@ class SensorEstimator:
                                     float(gz), has_mag, float(mx), float(my), float(mz), dt, time_us)
         return self.finish(values, time_us, dt, frame.gps, frame.baro)
 
+    def refresh(self, time_us: int) -> Estimate:
+        """The estimate brought up to the state vector at `time_us` (the last sample's time),
+        for a caller whose kernel stepped the state without `finish` (`estimator_imu_step`, a
+        baro sample's `baro_update`; no GPS sample): what `finish` would have made of those steps."""
+        return self.finish(current_values(self.state, time_us), time_us, 0.0, None, None)
+
     def finish(self, values: tuple, time_us: int, dt: float, gps, baro) -> Estimate:  # noqa: ANN001
         """The step's estimate from `estimator_imu_step`'s values, with this step's GPS and baro
         samples (None when none) folded in."""
@@ -386,9 +438,8 @@ class SensorEstimator:
         if gps is not None or baro is not None:
             if gps is not None:
                 self._gps_update(e, gps)
-            if baro is not None and e.origin is not None and dt > 0.0:
-                # PX4 ignores HIL_SENSOR.pressure_alt: height comes from the pressure itself
-                self._baro_update(pressure_altitude_m(baro.pressure_hpa * 100.0), time_us)
+            if baro is not None:
+                baro_update(self.state, baro.pressure_hpa, time_us, dt)
             s = self.state.tolist()  # Python floats: numpy elements read slowly one by one
             e.position_ned_m = (s[_POS], s[_POS + 1], s[_POS + 2])
             e.velocity_ned_m_s = (s[_VEL], s[_VEL + 1], s[_VEL + 2])
@@ -434,15 +485,17 @@ class SensorEstimator:
             math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0)),
             alt0 - alt,
         )
-        if self._last_baro_alt_m is not None and self._baro_offset_m is not None:
+        baro_offset, last_baro_alt = s[_BARO_OFFSET:_LAST_BARO_ALT + 1:2].tolist()
+        has_baro_offset = baro_offset == baro_offset  # NaN: none yet
+        if last_baro_alt == last_baro_alt and has_baro_offset:
             # the baro's zero is tied to GPS height: averaged at first, then tracked slowly
             n = self._baro_offset_samples = self._baro_offset_samples + 1
             gain = 1.0 / n if n <= self.BARO_OFFSET_SAMPLES else self.BARO_OFFSET_GAIN
-            self._baro_offset_m += gain * (self._last_baro_alt_m + meas[2] - self._baro_offset_m)
+            s[_BARO_OFFSET] = baro_offset + gain * (last_baro_alt + meas[2] - baro_offset)
         # horizontal from GPS; vertical position from baro (PX4 EKF2_HGT_REF=baro), velocity from GPS
         pos, v, bias = s[_POS:_POS + 3].tolist(), s[_VEL:_VEL + 3].tolist(), s[_ACC_BIAS:_ACC_BIAS + 3].tolist()
         for k in range(3):
-            if k < 2 or self._baro_offset_m is None:
+            if k < 2 or not has_baro_offset:
                 ep = meas[k] - pos[k]
                 pos[k] += self.GPS_POS_GAIN * ep
                 v[k] += self.GPS_POS_TO_VEL * ep
@@ -450,18 +503,3 @@ class SensorEstimator:
             v[k] += self.GPS_VEL_GAIN * ev
             bias[k] -= self.ACC_BIAS_GAIN * ev
         s[_POS:_POS + 3], s[_VEL:_VEL + 3], s[_ACC_BIAS:_ACC_BIAS + 3] = pos, v, bias
-
-    def _baro_update(self, pressure_alt_m: float, time_us: int) -> None:
-        s = self.state
-        last = self._last_baro_us
-        self._last_baro_us = time_us
-        self._last_baro_alt_m = pressure_alt_m
-        z = float(s[_POS + 2])
-        if self._baro_offset_m is None or last is None:
-            self._baro_offset_m = pressure_alt_m + z   # baro alt at local z = 0
-            return
-        dt = min(max(time_us - last, 0) * 1e-6, 0.5)
-        z_baro = self._baro_offset_m - pressure_alt_m
-        ez = z_baro - z
-        s[_POS + 2] = z + min(1.0, self.BARO_GAIN_PER_S * dt) * ez
-        s[_VEL + 2] += min(1.0, self.BARO_VEL_GAIN_PER_S * dt) * ez

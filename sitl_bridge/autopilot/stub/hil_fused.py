@@ -11,6 +11,11 @@ parser, struct decode, SensorFrame, `StubAutopilot.update`, struct pack, frame e
 * `actuator_frame`: the stub's `inner_loop` (attitude, rates, mixer) on the estimator state's
   attitude and rates (`attitude_and_rates`, as `direct`'s fused loop), then the
   HIL_ACTUATOR_CONTROLS frame, into a buffer that goes to the socket as it is.
+* in a steady step (`Commander.steady`), `steady_actuator_frame` instead of the commander and
+  position loop in Python and `actuator_frame`: the commander's `steady_output` test, the stub's
+  `steady_step` (position loop when due, `inner_loop`; motors off when disarmed), then the same
+  frame (as `direct`'s `vehicle_step`); when the commander has something to decide, it writes
+  nothing and the step goes on in Python as above.
 
 The same components as the per-message path, in the same order: the answers are the same bytes
 (tests/test_stub_hil_fused.py). Anything else (a split or extra frame, garbage, signing, another
@@ -25,7 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sitl_bridge import frames, mavlink_kernels
-from sitl_bridge.jit import kernel
+from sitl_bridge.jit import dual, kernel
 from sitl_bridge.mavlink_kernels import (
     ACT_CRC,
     ACT_ID,
@@ -46,12 +51,15 @@ from sitl_bridge.mavlink_kernels import (
 )
 from sitl_bridge.sensors import BaroSample, GpsSample
 
+from . import commander as commander_module
 from . import control, mixer, vec
-from .autopilot import inner_loop, inner_loop_kernel
-from .estimator import attitude_and_rates, estimator_imu_step
+from .autopilot import inner_loop, inner_loop_kernel, steady_step
+from .commander import NOT_STEADY, STEADY_OFF, steady_output
+from .estimator import attitude_and_rates, estimate_values, estimator_imu_step, position_valid
 
 if TYPE_CHECKING:
     from .autopilot import StubAutopilot
+    from .estimator import Estimate
     from .hil_client import HilClient
 
 HANDLED, WITH_BARO, WITH_GPS = 1, 2, 4
@@ -137,11 +145,10 @@ def actuator_frame(
     """With `fly`, the inner loop (`inner_loop`, outputs also into `ctl`);
     then the HIL_ACTUATOR_CONTROLS frame answering `time_us` into `out` (motors 0 unless flying;
     armed or disarmed mode; lockstep flag). Returns the frame's length."""
-    scratch[:] = 0
-    f = scratch.view(np.float32)
+    u0 = u1 = u2 = u3 = 0.0
     if fly:
         q, rates = attitude_and_rates(est_state)
-        f[4], f[5], f[6], f[7] = inner_loop(
+        u0, u1, u2, u3 = inner_loop(
             ctl,
             att_gains,
             rate_state,
@@ -154,6 +161,56 @@ def actuator_frame(
             dt_s,
             landed,
         )
+    return actuator_message(out, scratch, sequence, system_id, component_id, time_us, armed, u0, u1, u2, u3)
+
+
+@kernel(frames, vec, mavlink_kernels, control, mixer, inner_loop_kernel, estimator_imu_step, commander_module)
+def steady_actuator_frame(
+    out: np.ndarray,
+    scratch: np.ndarray,
+    sequence: int,
+    system_id: int,
+    component_id: int,
+    time_us: int,
+    plan: np.ndarray,
+    last_us: int,
+    last_run_us: int,
+    ctl: np.ndarray,
+    att_gains: np.ndarray,
+    rate_state: np.ndarray,
+    rate_gains: np.ndarray,
+    mix_constants: np.ndarray,
+    mix_state: np.ndarray,
+    est_state: np.ndarray,
+    pc_state: np.ndarray,
+    pc_gains: np.ndarray,
+) -> tuple[int, bool, bool]:
+    """A steady commander's step on this step's estimate (the estimator state, `finish` done):
+    when `steady_output` finds one, `steady_step` (or motors off) and the HIL_ACTUATOR_CONTROLS
+    frame into `out`; returns (the frame's length, whether the position loop ran, whether
+    flying), or (0, False, False) with nothing changed when the commander must decide."""
+    q, rates, pos, vel, acc, _, _, _, _ = estimate_values(est_state, time_us)
+    output = steady_output(plan, time_us, pos[2], vel[0], vel[1], vel[2], position_valid(est_state, time_us))
+    if output == NOT_STEADY:
+        return 0, False, False
+    if output == STEADY_OFF:
+        return actuator_message(out, scratch, sequence, system_id, component_id, time_us, False, 0.0, 0.0, 0.0,
+                                0.0), False, False
+    outer_ran, u0, u1, u2, u3 = steady_step(plan, ctl, pc_state, pc_gains, att_gains, rate_state, rate_gains,
+                                            mix_constants, mix_state, q, rates, pos, vel, acc, time_us, last_us,
+                                            last_run_us)
+    size = actuator_message(out, scratch, sequence, system_id, component_id, time_us, True, u0, u1, u2, u3)
+    return size, outer_ran, True
+
+
+@dual
+def actuator_message(out: np.ndarray, scratch: np.ndarray, sequence: int, system_id: int, component_id: int,
+                     time_us: int, armed: bool, u0: float, u1: float, u2: float, u3: float) -> int:
+    """The HIL_ACTUATOR_CONTROLS frame answering `time_us` with motors 1..4 = u into `out`
+    (armed or disarmed mode; lockstep flag). Returns the frame's length."""
+    scratch[:] = 0
+    f = scratch.view(np.float32)
+    f[4], f[5], f[6], f[7] = u0, u1, u2, u3
     w = scratch.view(np.int64)
     w[0], w[1] = time_us, 1  # time, flags: lockstep
     scratch[ACT_LEN - 1] = 129 if armed else 1  # custom mode enabled | safety armed
@@ -178,6 +235,9 @@ class FusedSensorStep:
         """Load (or compile) both kernels on scratch state, not at the first step."""
         ap = self.client.autopilot
         est = ap.estimator
+        ap.refresh_gains()  # the steady step divides by some of them
+        level = est.state.copy()
+        level[0] = 1.0  # an attitude (w, x, y, z) to control: the identity
         sensor_estimate(b"", est.state.copy(), est.gains, -1, self._scratch, self._gps)
         actuator_frame(
             self._out,
@@ -199,6 +259,28 @@ class FusedSensorStep:
             0.0,
             False,
         )
+        scratch_plan = ap.commander.plan.copy()
+        scratch_plan[:] = np.nan  # no offboard or takeoff test, no descent: flies (on scratch copies)
+        steady_actuator_frame(
+            self._out,
+            self._scratch,
+            0,
+            1,
+            1,
+            4000,
+            scratch_plan,
+            -1,
+            -1,
+            ap.control.copy(),
+            ap.attitude_control.gains,
+            ap.rate_control.state.copy(),
+            ap.rate_control.gains,
+            ap.mixer.constants,
+            ap.mixer.state.copy(),
+            level,
+            ap.position_control.state.copy(),
+            ap.position_control.gains,
+        )
 
     def _operands(self, ap: StubAutopilot) -> tuple:
         """`actuator_frame`'s state and gain vectors (new ones after `StubAutopilot.reset`)."""
@@ -212,6 +294,8 @@ class FusedSensorStep:
                 ap.mixer.constants,
                 ap.mixer.state,
                 ap.estimator.state,
+                ap.position_control.state,
+                ap.position_control.gains,
             )
         return self._vectors
 
@@ -238,9 +322,28 @@ class FusedSensorStep:
                 client._parser.stats.frames += 1
             if status & WITH_BARO:
                 baro = BaroSample(pressure_hpa, 0.0, 0.0)  # the estimator reads the pressure only
-        dt_s = ap.prepare(est.finish(values, time_us, dt, gps, baro))
+        e = est.finish(values, time_us, dt, gps, baro)
         sequence = client._encoder.take_sequence()
+        size = 0
+        commander = ap.commander
+        if commander.steady and ap.gains_current:
+            size, outer_ran, flying = steady_actuator_frame(
+                self._out, self._scratch, sequence, *self._ids, time_us, commander.plan, *ap.clock_us(),
+                *self._operands(ap)
+            )
+            if size:
+                ap.flew_steady(time_us, outer_ran, flying)
+        if not size:
+            size = self._actuators(ap, e, sequence, time_us)
+        client._send(self._view[:size])
+        stats.actuator_msgs += 1
+        return 1
+
+    def _actuators(self, ap: StubAutopilot, e: Estimate, sequence: int, time_us: int) -> int:
+        """The commander and position loop in Python (`prepare`), then `actuator_frame`."""
+        dt_s = ap.prepare(e)
         flying = dt_s is not None  # else motors off or idle
+        operands = self._operands(ap)[:7]  # actuator_frame's: up to the estimator state
         size = actuator_frame(
             self._out,
             self._scratch,
@@ -249,13 +352,11 @@ class FusedSensorStep:
             time_us,
             flying,
             True if flying else ap.last_command.armed,
-            *self._operands(ap),
+            *operands,
             ap.yaw_rate_ff if flying else 0.0,
             dt_s if flying else 0.0,
             ap.commander.landed if flying else False,
         )
         if flying:
             ap.outputs_in_control()
-        client._send(self._view[:size])
-        stats.actuator_msgs += 1
-        return 1
+        return size

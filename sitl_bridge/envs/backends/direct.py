@@ -13,15 +13,26 @@ Estimator (`estimator=`, see `base.ESTIMATORS`): `sensors` (default) samples eve
 ground-truth frame (`SensorSuite.truth_frame`: no sensor simulation, no noise) for the stub's
 `GroundTruthEstimator`, the same estimator the `stub` backend then runs on HIL_STATE_QUATERNION.
 
-Fused loop: per vehicle and step, two compiled calls composed from the components' own
-kernels, with no frame or command objects: `sense_and_estimate` (the suite's IMU/mag `sense`,
-then the estimator's `estimator_imu_step`; with `ground_truth`, `truth_estimate`: the suite's
-`truth_of_vector`, then the ground-truth estimator's `relative_estimate`) and, after the Python
-commander and position loop (`StubAutopilot.prepare`), `control_and_rotors` (the stub's
-`inner_loop`, then the simulation's `vehicle_wrench`). Baro and GPS (`SensorSuite.slow_samples`)
-and their estimator updates (`SensorEstimator.finish`) stay Python at their 50 / 5 Hz. The
-result is the same computation as `StubAutopilot.update(SensorSuite.sample(...))` (or
-`truth_frame`) + `Simulation.step`, in the same order, bit for bit.
+Fused loop: per vehicle and step, compiled calls composed from the components' own kernels,
+with no frame or command objects. In a steady step (the commander's `steady`: OFFBOARD, takeoff
+or hold, or disarmed, with nothing to decide; see `commander.steady_output`) with no GPS sample
+due, one call, `vehicle_step`: the suite's IMU/mag `sense`, the estimator's
+`estimator_imu_step` and `baro_update`, the commander's `steady_output` test, the stub's
+`steady_step` (position loop when due, `inner_loop`; motors off when disarmed) and the
+simulation's `vehicle_wrench`; the Python left is the bookkeeping (`StubAutopilot.flew_steady`),
+and the estimate object is brought up to date (`SensorEstimator.refresh`) only when Python may
+read it (before `until`, at the end). When
+the commander has something to decide, `vehicle_step` stops after the estimator and the step
+goes on as below. With `ground_truth`, `truth_estimate` and `GroundTruthEstimator.finish`
+every step (the estimate stays current), then in a steady step `truth_vehicle_step` (the same
+tail, `steady_wrench`, on the truth). Otherwise two calls: `sense_and_estimate` (`sense`, then
+`estimator_imu_step`; with `ground_truth`, `truth_estimate`: the suite's `truth_of_vector`,
+then the ground-truth estimator's `relative_estimate`) and, after the Python commander and
+position loop (`StubAutopilot.prepare`), `control_and_rotors` (`inner_loop`, then
+`vehicle_wrench`). Baro and GPS sampling (`SensorSuite.slow_samples`, 50 / 5 Hz) and the GPS
+estimator update (`SensorEstimator.finish`) stay Python. The result is the same computation
+as `StubAutopilot.update(SensorSuite.sample(...))` (or `truth_frame`) + `Simulation.step`, in
+the same order, bit for bit.
 
 Reset: in place, the same steps as `SimSession.reset` for in-process stubs: the simulation
 re-spawned from the episode's seed (time 0), sensor noise re-seeded (`sensor_seed`), every
@@ -36,22 +47,33 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from sitl_bridge.autopilot.modes import HOLD, MainMode, custom_mode
-from sitl_bridge.autopilot.stub.autopilot import StubAutopilot, inner_loop, inner_loop_kernel
+from sitl_bridge.autopilot.stub import commander as stub_commander
+from sitl_bridge.autopilot.stub.autopilot import (
+    StubAutopilot,
+    inner_loop,
+    inner_loop_kernel,
+    steady_step,
+)
+from sitl_bridge.autopilot.stub.commander import NOT_STEADY, STEADY_OFF, steady_output
 from sitl_bridge.autopilot.stub.estimator import (
     ESTIMATOR_STATE,
     GROUND_TRUTH_STATE,
     attitude_and_rates,
+    baro_update,
+    current_values,
+    estimate_values,
     estimator_imu_step,
+    position_valid,
     relative_estimate,
 )
 from sitl_bridge.autopilot.stub.modes import CommandResult, LandedState
 from sitl_bridge.autopilot.stub.params import ParamTable
 from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, CollisionFlags, Snapshot
 from sitl_bridge.envs.options import EnvOptions
-from sitl_bridge.jit import kernel
+from sitl_bridge.jit import dual, kernel
 from sitl_bridge.physics import MotorCommand, Simulation
 from sitl_bridge.physics.simulation import vehicle_wrench
-from sitl_bridge.sensors import SensorSuite, sensor_seed
+from sitl_bridge.sensors import SensorSuite, environment, sensor_seed
 from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.sensors.suite import sense, truth_of_vector
 from sitl_bridge.world import World
@@ -62,6 +84,7 @@ SETPOINT_PERIOD_S = 0.05
 
 
 _HOLD_MODE = custom_mode(*HOLD)
+_NAN = float("nan")
 
 
 @kernel(sense, estimator_imu_step)
@@ -71,6 +94,64 @@ def sense_and_estimate(x: np.ndarray, imu_noise: np.ndarray, imu_row: int, mag_n
     """`SensorSuite.sample`'s IMU/mag part, then `SensorEstimator.update`'s per-step part."""
     a0, a1, a2, g0, g1, g2, m0, m1, m2 = sense(x, imu_noise, imu_row, mag_noise, mag_row, sense_constants)
     return estimator_imu_step(est_state, est_gains, a0, a1, a2, g0, g1, g2, mag_row >= 0, m0, m1, m2, dt, time_us)
+
+
+@kernel(sense, estimator_imu_step, environment, inner_loop_kernel, stub_commander, vehicle_wrench)
+def vehicle_step(x: np.ndarray, imu_noise: np.ndarray, imu_row: int, mag_noise: np.ndarray, mag_row: int,
+                 sense_constants: np.ndarray, est_state: np.ndarray, est_gains: np.ndarray, dt: float, time_us: int,
+                 baro_hpa: float, plan: np.ndarray, last_us: int, last_run_us: int, ctl: np.ndarray,
+                 pc_state: np.ndarray, pc_gains: np.ndarray, att_gains: np.ndarray, rate_state: np.ndarray,
+                 rate_gains: np.ndarray, mix_constants: np.ndarray, mix_state: np.ndarray, rotor_constants: np.ndarray,
+                 rotor_speeds: np.ndarray) -> tuple:
+    """A steady commander's whole step (module docstring): `sense_and_estimate` and the baro
+    sample (`baro_hpa`, NaN: none) folded in as `SensorEstimator.finish` does, then, when
+    `steady_output` finds a steady step, `steady_step` (or motors off) and the rotors' world
+    wrench. Returns (status, force, torque): status 0 when the commander must decide (only the
+    estimator ran), 1 flown, 2 flown with the position loop, 3 disarmed."""
+    a0, a1, a2, g0, g1, g2, m0, m1, m2 = sense(x, imu_noise, imu_row, mag_noise, mag_row, sense_constants)
+    estimator_imu_step(est_state, est_gains, a0, a1, a2, g0, g1, g2, mag_row >= 0, m0, m1, m2, dt, time_us)
+    if baro_hpa == baro_hpa:
+        baro_update(est_state, baro_hpa, time_us, dt)
+    q, rates, pos, vel, acc, _, _, _, _ = estimate_values(est_state, time_us)
+    return steady_wrench(plan, time_us, q, rates, pos, vel, acc, position_valid(est_state, time_us), last_us,
+                         last_run_us, ctl, pc_state, pc_gains, att_gains, rate_state, rate_gains, mix_constants,
+                         mix_state, x, rotor_constants, rotor_speeds)
+
+
+@kernel(sense, estimator_imu_step, inner_loop_kernel, stub_commander, vehicle_wrench)
+def truth_vehicle_step(x: np.ndarray, origin: np.ndarray, time_us: int, plan: np.ndarray, last_us: int,
+                       last_run_us: int, ctl: np.ndarray, pc_state: np.ndarray, pc_gains: np.ndarray,
+                       att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray,
+                       mix_constants: np.ndarray, mix_state: np.ndarray, rotor_constants: np.ndarray,
+                       rotor_speeds: np.ndarray) -> tuple:
+    """`vehicle_step` with the ground-truth estimate (`truth_estimate`'s, the position valid),
+    after `GroundTruthEstimator.finish` has taken the same estimate: (status, force, torque)."""
+    q, rates, vel, acc, pos = truth_of_vector(x)
+    q, rates, pos, vel, acc, _, _, _ = relative_estimate(origin, q, rates, vel, acc, pos[0], pos[1], pos[2])
+    return steady_wrench(plan, time_us, q, rates, pos, vel, acc, True, last_us, last_run_us, ctl, pc_state,
+                         pc_gains, att_gains, rate_state, rate_gains, mix_constants, mix_state, x, rotor_constants,
+                         rotor_speeds)
+
+
+@dual
+def steady_wrench(plan: np.ndarray, time_us: int, q: tuple, rates: tuple, pos: tuple, vel: tuple, acc: tuple,
+                  pos_valid: bool, last_us: int, last_run_us: int, ctl: np.ndarray, pc_state: np.ndarray,
+                  pc_gains: np.ndarray, att_gains: np.ndarray, rate_state: np.ndarray, rate_gains: np.ndarray,
+                  mix_constants: np.ndarray, mix_state: np.ndarray, x: np.ndarray, rotor_constants: np.ndarray,
+                  rotor_speeds: np.ndarray) -> tuple:
+    """The commander's `steady_output` on this step's estimate, then `steady_step` (or motors
+    off) and the rotors' world wrench: (status, force, torque), status as `vehicle_step`'s."""
+    output = steady_output(plan, time_us, pos[2], vel[0], vel[1], vel[2], pos_valid)
+    if output == NOT_STEADY:
+        return 0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+    if output == STEADY_OFF:
+        force, torque = vehicle_wrench(x, rotor_constants, rotor_speeds, 0.0, 0.0, 0.0, 0.0, False)
+        return 3, force, torque
+    outer_ran, u0, u1, u2, u3 = steady_step(plan, ctl, pc_state, pc_gains, att_gains, rate_state, rate_gains,
+                                            mix_constants, mix_state, q, rates, pos, vel, acc, time_us, last_us,
+                                            last_run_us)
+    force, torque = vehicle_wrench(x, rotor_constants, rotor_speeds, u0, u1, u2, u3, True)
+    return 2 if outer_ran else 1, force, torque
 
 
 @kernel(sense, estimator_imu_step)
@@ -200,6 +281,21 @@ class DirectBackend:
 
     def _run_fused(self, steps: int, until: Callable[[], bool] | None) -> int:
         """`run_steps`: the fused loop (see the module docstring)."""
+        stale = [False] * self.num_drones  # estimate objects behind their state (steady steps)
+        try:
+            return self._fused_steps(steps, until, stale)
+        finally:
+            self._refresh_estimates(stale)
+
+    def _refresh_estimates(self, stale: list[bool]) -> None:
+        """Bring the estimate objects of steady steps up to date (`SensorEstimator.refresh`)."""
+        for i, behind in enumerate(stale):
+            if behind:
+                est = self.autopilots[i].estimator
+                est.refresh(est.last_time_us)
+                stale[i] = False
+
+    def _fused_steps(self, steps: int, until: Callable[[], bool] | None, stale: list[bool]) -> int:
         sim, autopilots, lanes = self.sim, self.autopilots, self._lanes
         refresh = self._refresh_steps
         begin, push, finish = sim.begin_step, sim.push_wrench, sim.finish_step
@@ -210,10 +306,18 @@ class DirectBackend:
             time_us = sim.time_us
             begin()
             for (i, truth, x, rotor_k, speeds, suite, est, est_s, est_g, ap, ctl, att_g, rate_s, rate_g, mix_c,
-                 mix_s) in lanes:
+                 mix_s, commander, plan, pc_s, pc_g) in lanes:
                 if truth:
                     if est.has_origin:
                         e = est.finish(truth_estimate(x, est_s), time_us)
+                        if commander.steady and ap.gains_current:  # the estimate is up to date: no refresh
+                            status, force, torque = truth_vehicle_step(
+                                x, est_s, time_us, plan, *ap.clock_us(), ctl, pc_s, pc_g, att_g, rate_s, rate_g,
+                                mix_c, mix_s, rotor_k, speeds)
+                            if status:
+                                ap.flew_steady(time_us, status == 2, status != 3)
+                                push(i, force, torque)
+                                continue
                     else:  # the first step: the origin's geodetic position (Python, once)
                         e = est.update(suite.truth_frame(sim.state(i), time_us))
                 else:
@@ -222,9 +326,22 @@ class DirectBackend:
                     mag_row, baro, gps = suite.slow_samples(x, time_us) if time_us >= suite.next_slow_us \
                         else (-1, None, None)
                     dt = est.step_dt(time_us)
-                    e = est.finish(sense_and_estimate(x, imu.array, row, suite.mag_noise.array, mag_row,
-                                                      suite.constants, est_s, est_g, dt, time_us),
-                                   time_us, dt, gps, baro)
+                    if commander.steady and gps is None and ap.gains_current:
+                        status, force, torque = vehicle_step(
+                            x, imu.array, row, suite.mag_noise.array, mag_row, suite.constants, est_s, est_g, dt,
+                            time_us, _NAN if baro is None else baro.pressure_hpa, plan, *ap.clock_us(), ctl, pc_s,
+                            pc_g, att_g, rate_s, rate_g, mix_c, mix_s, rotor_k, speeds)
+                        if status:
+                            ap.flew_steady(time_us, status == 2, status != 3)
+                            stale[i] = True
+                            push(i, force, torque)
+                            continue
+                        e = est.finish(current_values(est_s, time_us), time_us, dt, None, None)
+                    else:
+                        e = est.finish(sense_and_estimate(x, imu.array, row, suite.mag_noise.array, mag_row,
+                                                          suite.constants, est_s, est_g, dt, time_us),
+                                       time_us, dt, gps, baro)
+                    stale[i] = False
                 dt_s = ap.prepare(e)
                 if dt_s is None:  # motors off or idle: the command as `Simulation.step` applies it
                     command = ap.last_command
@@ -240,8 +357,10 @@ class DirectBackend:
             if sim.has_collisions:
                 for c in sim.collisions():
                     self._collisions.add(c)
-            if until is not None and until():
-                return k + 1
+            if until is not None:
+                self._refresh_estimates(stale)
+                if until():
+                    return k + 1
         return steps
 
     def _lane(self, i: int) -> tuple:
@@ -250,13 +369,14 @@ class DirectBackend:
         gains = getattr(est, "gains", est.state)  # the ground-truth estimator has none (unused then)
         return (i, ap.ground_truth_estimate, sim.vehicle_vector(i), rotors.constants, rotors.speeds, self.sensors[i],
                 est, est.state, gains, ap, ap.control, ap.attitude_control.gains, ap.rate_control.state,
-                ap.rate_control.gains, ap.mixer.constants, ap.mixer.state)
+                ap.rate_control.gains, ap.mixer.constants, ap.mixer.state, ap.commander, ap.commander.plan,
+                ap.position_control.state, ap.position_control.gains)
 
     @staticmethod
     def _warm_up(lane: tuple) -> None:
         """Load the fused kernels now (scratch copies of the state), not at the first step."""
         (_, truth, x, rotor_k, speeds, suite, est, est_s, est_g, ap, ctl, att_g, rate_s, rate_g, mix_c,
-         mix_s) = lane
+         mix_s, commander, plan, pc_s, pc_g) = lane
         ap.refresh_gains()
         scratch = np.zeros(ESTIMATOR_STATE)  # a fresh sensor estimator: its first sample sets the attitude
         noise = np.zeros((1, 6))
@@ -265,6 +385,14 @@ class DirectBackend:
         truth_estimate(x.copy(), np.ones(GROUND_TRUTH_STATE))
         control_and_rotors(ctl.copy(), att_g, rate_s.copy(), rate_g, mix_c, mix_s.copy(), scratch, truth, 0.0, 0.004,
                            False, x.copy(), rotor_k, speeds.copy())
+        scratch_plan = plan.copy()
+        scratch_plan[:] = np.nan  # no offboard or takeoff test, no descent: flies (on scratch copies)
+        vehicle_step(x.copy(), noise, 0, noise[:, :3].copy(), -1, suite.constants, scratch.copy(),
+                     np.zeros_like(est_g) if truth else est_g, 0.004, 4000, 1000.0, scratch_plan, -1, -1, ctl.copy(),
+                     pc_s.copy(), pc_g, att_g, rate_s.copy(), rate_g, mix_c, mix_s.copy(), rotor_k, speeds.copy())
+        truth_vehicle_step(x.copy(), np.ones(GROUND_TRUTH_STATE), 4000, scratch_plan, -1, -1, ctl.copy(), pc_s.copy(),
+                           pc_g, att_g, rate_s.copy(), rate_g, mix_c, mix_s.copy(), rotor_k, speeds.copy())
+        current_values(scratch, 4000)
 
     # -- episode start: the same sequence the `stub` backend sends through MAVSDK -------------
     def _hover_start(self) -> None:
