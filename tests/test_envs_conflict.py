@@ -106,6 +106,28 @@ def test_a_drone_at_its_goal_lands_with_after_goal_land(tmp_path: Path) -> None:
     assert heights["land"] < heights["hover"] - 3.0  # ... or descends out of the way
 
 
+def test_a_drone_landing_at_its_goal_no_longer_counts_for_the_separation_reward(tmp_path: Path) -> None:
+    data = yaml.safe_load(_world(tmp_path, after_goal="land").read_text())
+    data["task"]["reward"]["separation"] = {"scale": -10, "distance_m": 30.0}  # any distance pays
+    path = tmp_path / "tw_sep.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    env = make_parallel_env(str(path), seed=0)
+    try:
+        env.reset(seed=0)
+        script = [CLIMB] * 4 + [FORWARD] * 8  # drone1 flies to its goal; drone0 hovers at its spawn
+        paid, landed = [], False
+        for step in range(len(script) + 3):
+            actions = {a: (script[step] if a == "drone1" and step < len(script) else HOVER) for a in env.agents}
+            _, _, _, _, infos = env.step(actions)
+            paid.append((landed, infos["drone0"]["reward_terms"]["separation"]))
+            landed = landed or infos.get("drone1", {}).get("outcome") == "goal"
+        assert any(not gone and value < 0 for gone, value in paid)  # drone1 in the air: drone0 pays
+        after = [value for gone, value in paid if gone]
+        assert after and all(value == 0 for value in after)  # drone1 landing: out of the airspace
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize(("key", "value", "message"), [
     ("after_goal", "teleport", r"task.end.after_goal: expected one of hover, land"),
     ("conflict_blame", "id", r"task.end.conflict_blame: expected one of both, give_way"),

@@ -13,7 +13,7 @@ the sum of `scale * term(view)` over the listed terms; unlisted terms are off.
 | `near_obstacle` | 1 when the lidar's near flag is set (and the drone did not crash) |
 | `crash` | 1 on a crash (collision, or the lidar crash flag when enabled) |
 | `out_of_workspace` | 1 when the drone left the workspace |
-| `separation` | `max(0, 1 - d / distance_m)` for the nearest other drone at distance d (0 beyond `distance_m`, default 3 m, 1 when touching): give it a negative scale to keep drones apart; with `give_way: true` times `1 - own priority`, so only the drone without right of way pays (it is the one responsible for keeping clear, as the give-way aircraft is in the rules of the air) |
+| `separation` | `max(0, 1 - d / distance_m)` for the nearest other drone still in the airspace (not landing at its goal under `end.after_goal: land`) at distance d (0 beyond `distance_m`, default 3 m, 1 when touching): give it a negative scale to keep drones apart; with `give_way: true` times `1 - own priority`, so only the drone without right of way pays (it is the one responsible for keeping clear, as the give-way aircraft is in the rules of the air) |
 
 Thesis ratios (chapter 5.3): closer +10..+20, goal +500..+1000, per step -5..-10, near -10..-50,
 crash -100..-500. Keep penalties on the scale of the other terms (a -1e12 crash made NaN weights).
@@ -89,6 +89,8 @@ def separation(distance_m: float, give_way: bool = False) -> Callable[[DroneView
     `give_way`, times 1 - own priority (the drone with right of way pays nothing)."""
     def term(view: DroneView) -> float:
         others = view.others_position_enu_m.reshape(-1, 3)
+        if view.others_in_airspace is not None:
+            others = others[view.others_in_airspace]  # a drone landing at its goal is no traffic
         if others.shape[0] == 0:
             return 0.0
         nearest = float(np.min(np.linalg.norm(others - view.position_enu_m, axis=1)))

@@ -161,10 +161,14 @@ class EpisodeRunner:
         return self._last
 
     # -- pieces -------------------------------------------------------------------------
+    def _left_airspace(self, i: int) -> bool:
+        """Whether drone `i` reached its goal and lands there (`end.after_goal: land`)."""
+        return self.outcomes[i] == "goal" and self.scenario.task.end.after_goal == "land"
+
     def _after_end(self, i: int) -> int:
         """The action a drone whose episode has ended flies: down at its goal under
         `end.after_goal: land`, else hover."""
-        if self.outcomes[i] == "goal" and self.scenario.task.end.after_goal == "land":
+        if self._left_airspace(i):
             return int(Action.DOWN)
         return int(Action.HOVER)
 
@@ -309,6 +313,7 @@ class EpisodeRunner:
                                            dtype=float).reshape(-1, 3),
             others_velocity_enu_m_s=np.array([snapshot.states[j].velocity_enu_m_s for j in others],
                                              dtype=float).reshape(-1, 3),
+            others_in_airspace=np.array([not self._left_airspace(j) for j in others], dtype=bool),
             crashed=crashed,
             near_obstacle=bool(scan.near),
             reached_goal=_inside(snapshot.goals[i], position, end.goal_margin_m),

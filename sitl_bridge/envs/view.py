@@ -51,6 +51,9 @@ class DroneView:
     others_position_enu_m: np.ndarray
     """(k, 3) positions of the other drones (transponder data)."""
     others_velocity_enu_m_s: np.ndarray
+    others_in_airspace: np.ndarray | None = None
+    """(k,) per other drone: still in the airspace (False once it landed at its goal under
+    `end.after_goal: land`); None: all are."""
     crashed: bool = False
     near_obstacle: bool = False
     reached_goal: bool = False
