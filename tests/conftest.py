@@ -84,3 +84,14 @@ def px4_claim():
 def px4_instance(px4_claim) -> int:
     """The instance of `px4_claim`, for tests that drive a `Px4Fleet` themselves."""
     return px4_claim.base
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels() -> None:
+    """Compile (or load) the stub's numba kernels once, in this process, before any test. A cold
+    cache costs 20-30 s of CPU; a stub started as a child process would otherwise pay it inside
+    a test's connect timeout. Children load the kernels from the same on-disk cache."""
+    from sitl_bridge.session import SimSession
+
+    with SimSession("empty", autopilot="stub", speed_factor=0, instance_base=pick_free_instances(1)) as session:
+        session.run_for(0.1)
