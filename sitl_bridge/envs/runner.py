@@ -185,8 +185,9 @@ class EpisodeRunner:
 
     def _lose_separation(self, snapshot: Snapshot, crashed: list[bool], by_drones_only: list[bool],
                          flying: list[bool]) -> None:
-        """`end.min_separation_m`: a flying drone with another flying drone closer than it crashes
-        (in place), caused by drones only unless it had also hit something."""
+        """`end.min_separation_m`: a drone still flying its episode with another such drone
+        closer than `min_separation_m` crashes (marked in place), caused by drones only unless
+        it had also hit something."""
         positions, _ = self._ranks(snapshot)
         limit = self.scenario.task.end.min_separation_m
         for i in range(self.num_drones):
