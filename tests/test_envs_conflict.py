@@ -128,6 +128,33 @@ def test_a_drone_landing_at_its_goal_no_longer_counts_for_the_separation_reward(
         env.close()
 
 
+def test_a_drone_hovering_at_its_goal_keeps_its_separation_and_a_landing_one_does_not(tmp_path: Path) -> None:
+    # drone1 flies to its goal in drone0's yard (4.8 m from drone0's spawn), then drone0 climbs
+    # toward it: 2.7 m away at 3 m up, inside min_separation_m while drone1 hovers there
+    script = [CLIMB] * 4 + [FORWARD] * 8
+    ends = {}
+    for after in ("hover", "land"):
+        env = make_parallel_env(str(_world(tmp_path, after_goal=after, min_separation_m=3.0)), seed=0)
+        try:
+            env.reset(seed=0)
+            outcome1, infos0 = None, []
+            for step in range(len(script) + 4):
+                if "drone0" not in env.agents:
+                    break
+                mine = script[step] if step < len(script) else HOVER
+                theirs = HOVER if outcome1 is None else CLIMB
+                actions = {a: (mine if a == "drone1" else theirs) for a in env.agents}
+                _, _, _, _, infos = env.step(actions)
+                outcome1 = infos.get("drone1", {}).get("outcome") or outcome1
+                infos0.append(infos["drone0"])
+            assert outcome1 == "goal"
+            ends[after] = infos0[-1]
+        finally:
+            env.close()
+    assert ends["hover"]["outcome"] == "crash" and ends["hover"]["reward_terms"]["crash"] == -100
+    assert ends["land"]["outcome"] is None  # drone1 left the airspace: drone0 flies on
+
+
 @pytest.mark.parametrize(("key", "value", "message"), [
     ("after_goal", "teleport", r"task.end.after_goal: expected one of hover, land"),
     ("conflict_blame", "id", r"task.end.conflict_blame: expected one of both, give_way"),

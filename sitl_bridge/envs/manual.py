@@ -77,8 +77,8 @@ def describe(scenario: Scenario) -> str:
         lines.append(f"A drone whose episode ended {after} while the others fly on. A crash between "
                      f"drones (centres within {end.conflict_m:g} m) is charged to {blame}.")
         if end.min_separation_m > 0.0:
-            lines.append(f"Two flying drones closer than {end.min_separation_m:g} m lose separation: "
-                         "a crash between drones, charged the same way.")
+            lines.append(f"A flying drone closer than {end.min_separation_m:g} m to another drone still "
+                         "in the air loses separation: a crash between drones, charged the same way.")
     lines.append("")
     return "\n".join(lines)
 

@@ -185,14 +185,15 @@ class EpisodeRunner:
 
     def _lose_separation(self, snapshot: Snapshot, crashed: list[bool], by_drones_only: list[bool],
                          flying: list[bool]) -> None:
-        """`end.min_separation_m`: a drone still flying its episode with another such drone
-        closer than `min_separation_m` crashes (marked in place), caused by drones only unless
-        it had also hit something."""
+        """`end.min_separation_m`: a drone still flying its episode closer than `min_separation_m`
+        to another drone in the airspace (any drone but one landing at its goal: one whose episode
+        ended hovers where it is) crashes (marked in place), caused by drones only unless it had
+        also hit something."""
         positions, _ = self._ranks(snapshot)
         limit = self.scenario.task.end.min_separation_m
         for i in range(self.num_drones):
             if flying[i] and not crashed[i] and any(
-                    flying[j] and float(np.linalg.norm(positions[j] - positions[i])) < limit
+                    not self._left_airspace(j) and float(np.linalg.norm(positions[j] - positions[i])) < limit
                     for j in range(self.num_drones) if j != i):
                 crashed[i] = by_drones_only[i] = True
 

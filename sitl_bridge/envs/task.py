@@ -32,7 +32,7 @@ how it is rewarded, when an episode ends, what an action means). Example::
         after_goal: hover           # a drone at its goal: hover there (thesis) | land (leave the airspace)
         conflict_blame: both        # two drones crash into each other: both charged (thesis) | give_way
         conflict_m: 1.0             # ... a crash with another drone's centre this close is a conflict
-        min_separation_m: 0.0       # flying drones closer than this lose separation: a conflict crash (0: off)
+        min_separation_m: 0.0       # a flying drone this close to another in the air loses separation: a conflict crash (0: off)
       render:                       # camera of render_mode="rgb_array" and videos (all optional)
         width: 512
         height: 384
@@ -123,7 +123,8 @@ class EndConfig:
     conflict_m: float = 1.0
     """Distance between drone centres (m) within which a crash counts as a conflict."""
     min_separation_m: float = 0.0
-    """Loss of separation: two flying drones whose centres come closer than this (m) crash, a
+    """Loss of separation: a flying drone whose centre comes closer than this (m) to another drone
+    in the airspace (any but one landing at its goal under `after_goal: land`) crashes, a
     conflict charged as `conflict_blame` says, even when they do not touch (0: off, only
     touching counts). Without it two drones can squeeze past each other through a window 0.9 m
     apart, which no traffic rule would accept."""
