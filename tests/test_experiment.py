@@ -150,14 +150,17 @@ def _experiment(folder: Path, extra: str = "") -> Path:
 
 def test_shipped_experiments_load() -> None:
     thesis = load_experiment(REPO / "experiments" / "thesis.yaml")
-    assert [s.stem for s in thesis.scenarios] == ["empty", "random_goal", "obstacle", "random_obstacle", "window",
-                                                  "two_drones_empty", "two_drones_window", "two_drones_empty_relative",
-                                                  "two_drones_window_relative", "street"]
+    assert [s.stem for s in thesis.scenarios] == [
+        "empty", "random_goal", "obstacle", "random_obstacle", "window", "two_drones_empty", "two_drones_window",
+        "random_goal_relative", "window_relative", "two_drones_empty_relative", "two_drones_window_relative",
+        "street"]
     assert thesis.seeds == tuple(range(10)) and thesis.eval_episodes == 100
     assert {(c.stems[0], c.target) for c in thesis.comparisons} == {
-        ("random_goal", "two_drones_empty"), ("window", "two_drones_window"), ("obstacle", "random_obstacle")}
-    stems, comparisons = selected(thesis, ["two_drones_empty"])
-    assert stems == {"two_drones_empty", "random_goal"} and [c.name for c in comparisons] == ["er_te"]
+        ("random_goal_relative", "two_drones_empty_relative"), ("window_relative", "two_drones_window_relative"),
+        ("obstacle", "random_obstacle")}
+    stems, comparisons = selected(thesis, ["two_drones_empty_relative"])
+    assert stems == {"two_drones_empty_relative", "random_goal_relative"}
+    assert [c.name for c in comparisons] == ["er_te_relative"]
     assert load_experiment(REPO / "experiments" / "smoke.yaml").seeds == (0, 1)
 
 
