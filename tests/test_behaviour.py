@@ -12,7 +12,13 @@ from sitl_bridge.envs.features import travel_frame
 from sitl_bridge.envs.scenario import load_scenario
 from sitl_bridge.errors import load_yaml
 from sitl_bridge.rl.actions_named import ACTION_NAMES_BY_FRAME, action_code, action_name
-from sitl_bridge.rl.behaviour import BehaviourAnalysis, RunBehaviour, classify, classify_episode
+from sitl_bridge.rl.behaviour import (
+    BehaviourAnalysis,
+    RunBehaviour,
+    classify,
+    classify_episode,
+    openings,
+)
 from sitl_bridge.rl.candidate_rules import (
     candidate_rules,
     fidelity,
@@ -219,18 +225,51 @@ def test_candidate_rules_support_and_yaml_round_trip(tmp_path: Path) -> None:
     assert steps == 400 and share is not None and 0.0 < share < 1.0
 
 
+def shifted(traces: list[Trace], dy: float) -> list[Trace]:
+    """The same traces moved `dy` north (goals too)."""
+    return [Trace(episode=t.episode, drone=t.drone, seed=t.seed, actions=t.actions, outcome=t.outcome,
+                  positions_enu_m=[[x, y + dy, z] for x, y, z in t.positions_enu_m],
+                  goal_enu_m=[t.goal_enu_m[0], t.goal_enu_m[1] + dy, t.goal_enu_m[2]]) for t in traces]
+
+
+def climb_first(episode: int = 0) -> list[Trace]:
+    """Drone 0 (south, lower priority) climbs 2 m straight up and then goes north first while
+    drone 1 (north, right of way) waits 4 s: through a window at y = 3 against the priority rule."""
+    eager = trace(line(0, [0, 0, 0, 2, 4, 6]), (0, 6), [4, 4, 3, 3, 3], drone=0, episode=episode,
+                  z=[2.5, 3.5, 4.5, 4.5, 4.5, 4.5])
+    waiting = trace(line(1, [6, 6, 6, 6, 6, 4, 2, 0]), (1, 0), [7, 7, 7, 7, 3, 3, 3], drone=1, episode=episode)
+    return [eager, waiting]
+
+
 def test_yield_rule_and_thesis_rule_5_on_a_window_scenario() -> None:
     scenario_file = WORLDS / "two_drones_window.yaml"
-    facts = scenario_facts(load_scenario(scenario_file), scenario_file)
+    scenario = load_scenario(scenario_file)
+    facts = scenario_facts(scenario, scenario_file)
     assert facts.opening and facts.num_drones == 2
-    runs = [RunBehaviour(str(seed), classify([t for e in range(3) for t in hover_then_go(e)], run=str(seed)))
-            for seed in range(3)]
-    runs.append(RunBehaviour("3", classify(back_off(), run="3")))
+    (window,) = openings(scenario.world.obstacles)  # the middle wall's, at y = 0, 4.5-5.7 m up
+    assert window.center_enu_m == pytest.approx((0.0, 0.0, 5.1)) and window.normal_enu == pytest.approx((0, 1, 0))
+
+    def classified(traces: list[Trace], label: str) -> RunBehaviour:
+        return RunBehaviour(label, classify(shifted(traces, -3.0), run=label, shared_openings=(window,)))
+
+    runs = [classified([t for e in range(3) for t in hover_then_go(e)], str(seed)) for seed in range(3)]
+    runs.append(classified(back_off(), "3"))
+    runs.append(classified([t for e in range(3) for t in climb_first(e)], "4"))
     analysis = BehaviourAnalysis("two_drones_window", runs)
+    # Seed 4's waiting (drone 1, right of way) is one hover step with drone 0 near and under way:
+    # no yield by the hover/back-off measure. The order through the window shows it.
     assert analysis.yield_priority() == (10, 10)
-    assert "yield follows priority rule in 10 of 10 episodes" in analysis.statements()
+    # Drone 1 (passing) is through after 3 steps, drone 0 after 8 (hovering) or 9 (backing off).
+    first = analysis.runs[0].episodes[0]
+    assert [d.opening_step for d in first.drones] == [8, 3] and first.order_follows_priority is True
+    late = analysis.runs[4].episodes[0]
+    assert [d.opening_step for d in late.drones] == [4, 6] and late.order_follows_priority is False
+    assert analysis.passing_order() == (10, 13)
+    assert "through the opening in priority order in 10 of 13 episodes" in analysis.statements()
     checks = {c.rule: c for c in thesis_checks(analysis, facts)}
-    assert checks[5].recovered and (checks[5].support_seeds, checks[5].seeds) == (3, 4)
+    assert checks[5].recovered and (checks[5].support_seeds, checks[5].seeds) == (4, 5)
+    assert (checks[5].support_episodes, checks[5].episodes) == (10, 13)
+    assert "9 of them hovering, 1 backing off" in checks[5].evidence
     assert checks[4].recovered and not checks[3].applicable
     rules = {r.manoeuvre: r for r in candidate_rules(analysis, facts)}
     # TW's features have no travel_others, and no observations were given: text only.

@@ -16,13 +16,18 @@ for every other one that also applies, and its outcome:
 
 Episodes are grouped so a multi-drone episode sees every drone: yields need the other drone's
 path, and each yield is checked against the scenario's priority rule (`envs/priority.py`).
+Where drones share an opening (a wall's window: `openings`), the order in which they go through
+it is checked against the same rule too: a yield can be a climb or a sidestep that no hover/back
+step shows, but the lower-priority drone still goes second.
 Across runs (seeds) the counts are kept per seed; a behaviour that does not dominate is reported
 as a split ("pass_right 60 %, pass_left 40 %"), never silently as the winner.
 """
 
 from __future__ import annotations
 
+import math
 from collections import Counter, defaultdict
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -90,6 +95,8 @@ class DroneBehaviour:
     """Own priority (`envs/priority.py`) when it yielded; the one it yielded to is in `other_priority`."""
     other_priority: float | None = None
     end_altitude_m: float | None = None
+    opening_step: int | None = None
+    """Steps it flew until it was through the shared opening (None: never, or no opening)."""
     actions: list[int] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
@@ -107,6 +114,9 @@ class EpisodeBehaviour:
     drones: list[DroneBehaviour]
     head_on: bool = False
     """Two drones fly opposite travel directions (the thesis's TE)."""
+    order_follows_priority: bool | None = None
+    """Every drone went through the shared opening after every drone of higher priority (None:
+    fewer than two drones went through one)."""
 
     @property
     def success(self) -> bool:
@@ -133,6 +143,47 @@ class EpisodeBehaviour:
 
     def shows(self, manoeuvre: str) -> bool:
         return any(d.manoeuvre == manoeuvre for d in self.drones)
+
+
+@dataclass(frozen=True)
+class Opening:
+    """A wall's window as a plane: a drone is through it once it changes side of the wall."""
+
+    center_enu_m: tuple[float, float, float]
+    normal_enu: tuple[float, float, float]
+    """Unit normal of the wall (its thickness axis)."""
+
+    def side(self, position: np.ndarray) -> float:
+        return float((np.asarray(position) - self.center_enu_m) @ np.asarray(self.normal_enu))
+
+
+def openings(obstacles: Iterable) -> tuple[Opening, ...]:  # noqa: ANN001 - world.schema.Obstacle
+    """The openings of a world's static walls (`world.obstacles`)."""
+    found = []
+    for obstacle in obstacles:
+        shape, window = obstacle.shape, obstacle.shape.opening
+        if obstacle.dynamic or window is None or shape.size_m is None:
+            continue
+        c, s = math.cos(obstacle.yaw_rad), math.sin(obstacle.yaw_rad)
+        x, y, z = obstacle.position_m
+        height = z - shape.size_m[2] / 2 + window.bottom_m + window.height_m / 2
+        found.append(Opening((x + c * window.offset_m, y + s * window.offset_m, height), (-s, c, 0.0)))
+    return tuple(found)
+
+
+def _through_step(path: np.ndarray, goal: np.ndarray, opening: Opening) -> int | None:
+    """Steps a drone whose goal is across `opening`'s wall flew until it was on the goal's side."""
+    start, target = opening.side(path[0]), opening.side(goal)
+    if start * target >= 0:
+        return None
+    return next((t for t in range(1, len(path)) if opening.side(path[t]) * start < 0), None)
+
+
+def _order_follows_priority(drones: list[DroneBehaviour], ranks: np.ndarray) -> bool | None:
+    through = [(d.opening_step, float(ranks[i])) for i, d in enumerate(drones) if d.opening_step is not None]
+    if len(through) < 2:
+        return None
+    return all(step_a < step_b for step_a, rank_a in through for step_b, rank_b in through if rank_a > rank_b)
 
 
 def _steps(path: np.ndarray, rotation: np.ndarray) -> np.ndarray:
@@ -177,8 +228,9 @@ def _yield(i: int, paths: list[np.ndarray], goals: list[np.ndarray], moves: np.n
 
 
 def classify_episode(traces: list[Trace], *, run: str = "", priority_rule: str = "lower_coordinate_yields",
-                     ) -> EpisodeBehaviour:
-    """Classify every drone of one episode (`traces`: that episode's traces, one per drone)."""
+                     shared_openings: tuple[Opening, ...] = ()) -> EpisodeBehaviour:
+    """Classify every drone of one episode (`traces`: that episode's traces, one per drone);
+    `shared_openings` (`openings(world.obstacles)`) adds the order they went through them."""
     traces = sorted(traces, key=lambda t: t.drone)
     usable = all(len(t.positions_enu_m) >= 2 and t.goal_enu_m is not None for t in traces)
     paths = [np.asarray(t.positions_enu_m, dtype=float).reshape(-1, 3) for t in traces]
@@ -198,7 +250,23 @@ def classify_episode(traces: list[Trace], *, run: str = "", priority_rule: str =
         directions = [travel_frame(p[0], g)[1, :2] for p, g in zip(paths, goals, strict=True)]
         episode.head_on = any(float(a @ b) <= HEAD_ON_COS for k, a in enumerate(directions)
                               for b in directions[k + 1:])
+        _passing_order(episode, paths, goals, priority_rule, shared_openings)
     return episode
+
+
+def _passing_order(episode: EpisodeBehaviour, paths: list[np.ndarray], goals: list[np.ndarray],
+                   priority_rule: str, shared_openings: tuple[Opening, ...]) -> None:
+    """Who went through the first opening that two or more drones went through, and whether in
+    priority order (priority as it stood at the start: the rule's fixed ranks in TW)."""
+    for opening in shared_openings:
+        steps = [_through_step(path, goal, opening) for path, goal in zip(paths, goals, strict=True)]
+        if sum(s is not None for s in steps) < 2:
+            continue
+        for drone, step in zip(episode.drones, steps, strict=True):
+            drone.opening_step = step
+        ranks = priorities(priority_rule, [p[0] for p in paths], [p[0] for p in paths], goals)
+        episode.order_follows_priority = _order_follows_priority(episode.drones, ranks)
+        return
 
 
 def _classify_drone(drone: DroneBehaviour, i: int, trace: Trace, paths: list[np.ndarray],
@@ -248,12 +316,13 @@ def _classify_drone(drone: DroneBehaviour, i: int, trace: Trace, paths: list[np.
 
 
 def classify(traces: list[Trace], *, run: str = "", priority_rule: str = "lower_coordinate_yields",
-             ) -> list[EpisodeBehaviour]:
+             shared_openings: tuple[Opening, ...] = ()) -> list[EpisodeBehaviour]:
     """Classify rollouts (`rl.rollout.rollout`'s traces), grouped per episode."""
     by_episode: dict[int, list[Trace]] = defaultdict(list)
     for trace in traces:
         by_episode[trace.episode].append(trace)
-    return [classify_episode(by_episode[e], run=run, priority_rule=priority_rule) for e in sorted(by_episode)]
+    return [classify_episode(by_episode[e], run=run, priority_rule=priority_rule, shared_openings=shared_openings)
+            for e in sorted(by_episode)]
 
 
 def split_text(shares: dict[str, float]) -> str:
@@ -292,8 +361,14 @@ class RunBehaviour:
         verdicts = [e.follows_priority for e in self.episodes if e.follows_priority is not None]
         return sum(verdicts), len(verdicts)
 
+    def passing_order(self) -> tuple[int, int]:
+        """(episodes going through the shared opening in priority order, episodes with an order)."""
+        verdicts = [e.order_follows_priority for e in self.episodes if e.order_follows_priority is not None]
+        return sum(verdicts), len(verdicts)
+
     def to_dict(self) -> dict:
         follows, with_yield = self.yield_priority()
+        in_order, with_order = self.passing_order()
         return {
             "label": self.label, "episodes": len(self.episodes),
             "counts": dict(self.counts()), "success_counts": dict(self.counts(successful=True)),
@@ -301,6 +376,7 @@ class RunBehaviour:
             "patterns": dict(Counter(e.pattern for e in self.episodes if e.success)),
             "majority": self.majority(),
             "yield_follows_priority": follows, "episodes_with_yield": with_yield,
+            "order_follows_priority": in_order, "episodes_with_order": with_order,
         }
 
 
@@ -337,6 +413,10 @@ class BehaviourAnalysis:
         pairs = [r.yield_priority() for r in self.runs]
         return sum(p[0] for p in pairs), sum(p[1] for p in pairs)
 
+    def passing_order(self) -> tuple[int, int]:
+        pairs = [r.passing_order() for r in self.runs]
+        return sum(p[0] for p in pairs), sum(p[1] for p in pairs)
+
     def by_outcome(self) -> dict[str, dict[str, int]]:
         """Manoeuvre -> outcome -> drone-episodes."""
         table: dict[str, Counter] = defaultdict(Counter)
@@ -363,6 +443,9 @@ class BehaviourAnalysis:
         follows, with_yield = self.yield_priority()
         if with_yield:
             out.append(f"yield follows priority rule in {follows} of {with_yield} episodes")
+        in_order, with_order = self.passing_order()
+        if with_order:
+            out.append(f"through the opening in priority order in {in_order} of {with_order} episodes")
         return out
 
     def to_dict(self) -> dict:
@@ -373,6 +456,7 @@ class BehaviourAnalysis:
             "seed_majorities": self.seed_majorities(), "patterns": self.pattern_split(),
             "by_outcome": self.by_outcome(),
             "yield_priority": {"follows": follows, "episodes_with_yield": with_yield},
+            "passing_order": dict(zip(("follows", "episodes_with_order"), self.passing_order(), strict=True)),
             "statements": self.statements(),
             "per_seed": [r.to_dict() for r in self.runs],
         }
@@ -383,7 +467,9 @@ class BehaviourAnalysis:
         for run in self.runs:
             counts = run.counts()
             follows, with_yield = run.yield_priority()
+            in_order, with_order = run.passing_order()
             extra = f"; yields by priority {follows}/{with_yield}" if with_yield else ""
+            extra += f"; through the opening in priority order {in_order}/{with_order}" if with_order else ""
             lines.append(f"    seed {run.label}: " + ", ".join(f"{k} {v}" for k, v in counts.most_common())
                          + f" (success {sum(d.outcome == 'goal' for d in run.drone_episodes)}"
                          f"/{len(run.drone_episodes)}){extra}")

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from sitl_bridge.envs.scenario import load_scenario
-from sitl_bridge.rl.behaviour import BehaviourAnalysis, RunBehaviour, classify
+from sitl_bridge.rl.behaviour import BehaviourAnalysis, RunBehaviour, classify, openings
 from sitl_bridge.rl.candidate_rules import (
     CandidateRule,
     ThesisCheck,
@@ -137,7 +137,8 @@ def analyse_runs(paths: list[str | Path], world: str | Path | None = None, *, ep
         traces, recorded = fly_recorded(path, scenario_path, episodes=episodes, seed=seed, autopilot=autopilot,
                                         progress=progress, desc=f"seed {label}")
         pooled += traces
-        runs.append(RunBehaviour(label, classify(traces, run=label, priority_rule=scenario.task.priority)))
+        runs.append(RunBehaviour(label, classify(traces, run=label, priority_rule=scenario.task.priority,
+                                                 shared_openings=openings(scenario.world.obstacles))))
         observations.update({(label, e, d): rows for (e, d), rows in recorded.items()})
     file = scenario_file_name(world or paths[0])
     analysis = BehaviourAnalysis(Path(file).stem, runs)

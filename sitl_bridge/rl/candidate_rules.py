@@ -38,6 +38,9 @@ LATERAL_MARGIN_M = 0.5
 """Sideways slack added to the largest sideways offset of the other drone seen at a trigger."""
 GROUND_CRASH_M = 0.5
 """A crash ending this low above the ground hit the ground (thesis rule 0)."""
+ORDER_SEED_SHARE = 0.8
+"""Thesis rule 5 holds in a seed when this share of its successful episodes went through the
+opening in priority order (half would be chance: one of the two goes first anyway)."""
 PLANNER_SHARE = 0.5
 """Direct flights with at least this share of action 6 use the planner's path (thesis rule 1)."""
 
@@ -423,16 +426,16 @@ THESIS_RULES = (
 
 
 def _per_seed(analysis: BehaviourAnalysis, rule: int, units: str, evidence: str, select, held,  # noqa: ANN001
-              ) -> ThesisCheck:
+              share: float = SEED_SUPPORT_SHARE) -> ThesisCheck:
     """A check over the items `select(run)` of every run (drone-episodes or episodes) that hold
-    when `held(item)`; the rule holds in a seed when at least half of its items do."""
+    when `held(item)`; the rule holds in a seed when at least `share` of its items do."""
     check = ThesisCheck(rule, THESIS_RULES[rule], True, seeds=len(analysis.runs), units=units, evidence=evidence)
     for run in analysis.runs:
         items = select(run)
         good = sum(bool(held(item)) for item in items)
         check.support_episodes += good
         check.episodes += len(items)
-        check.support_seeds += bool(items) and good >= SEED_SUPPORT_SHARE * len(items)
+        check.support_seeds += bool(items) and good >= share * len(items)
     check.recovered = check.support_seeds * 2 > check.seeds if check.episodes else None
     return check
 
@@ -478,11 +481,17 @@ def thesis_checks(analysis: BehaviourAnalysis, facts: ScenarioFacts) -> list[The
         checks.append(not_applicable(4, "no opening"))
 
     if facts.opening and facts.num_drones > 1:
-        backs = sum(e.success and e.shows("yield_back_off") for e in analysis.episodes)
+        # The order is what the rule is for; how the second drone waits (hovering, backing off,
+        # or a climb or sidestep no hover step shows) is the evidence's detail. One drone goes
+        # first anyway, so a seed holds only when the order follows priority well above chance.
+        ordered = [e for e in analysis.episodes if e.success and e.order_follows_priority]
+        hovers = sum(e.shows("yield_hover") for e in ordered)
+        backs = sum(e.shows("yield_back_off") for e in ordered)
         checks.append(_per_seed(analysis, 5, "successful episodes",
-                                f"where the lower-priority drone hovers ({backs} with a back-off instead)",
-                                lambda r: [e for e in r.episodes if e.success],
-                                lambda e: e.shows("yield_hover") and e.follows_priority))
+                                f"where the lower-priority drone went through the opening second ({hovers} of "
+                                f"them hovering, {backs} backing off while the other passed)",
+                                lambda r: [e for e in r.episodes if e.success and e.order_follows_priority is not None],
+                                lambda e: e.order_follows_priority, share=ORDER_SEED_SHARE))
     else:
         checks.append(not_applicable(5, "not two drones at an opening"))
     return checks

@@ -314,7 +314,10 @@ def _behaviour_section(results: dict[str, Any], meta: dict[str, Any]) -> list[st
     lines += [f"Every finished seed's best checkpoint flies the same {settings.get('behaviour_episodes', '?')} greedy "
               f"episodes (reset seeds `eval_seeds({EVAL_SEED_BASE}, n)`); each drone-episode is classified into one "
               "manoeuvre from its trajectory (`rl/behaviour.py`). The split counts the successful drone-episodes; "
-              "competing manoeuvres are reported side by side, never chosen silently.", "",
+              "competing manoeuvres are reported side by side, never chosen silently. Yields by priority: episodes "
+              "whose hover/back-off yields follow the scenario's priority rule; through the opening: episodes whose "
+              "drones went through the shared window in priority order (catches yields by a climb or a sidestep).",
+              "",
               "| scenario | successful / all drone-episodes | split (successful) | majority per seed | per episode "
               "| yields by priority | actions (own frame) |", "|---|---|---|---|---|---|---|"]
     details: list[str] = []
@@ -333,6 +336,9 @@ def _behaviour_section(results: dict[str, Any], meta: dict[str, Any]) -> list[st
         patterns = _top(b["patterns"]) if any("+" in k for k in b["patterns"]) else "-"
         yields = b["yield_priority"]
         yielded = f"{yields['follows']} of {yields['episodes_with_yield']}" if yields["episodes_with_yield"] else "-"
+        order = b.get("passing_order") or {}
+        if order.get("episodes_with_order"):
+            yielded += f"; through the opening {order['follows']} of {order['episodes_with_order']}"
         lines.append(f"| `{stem}` | {wins} / {total} | {head}{_cell(b['split_text']) or 'no success'} "
                      f"| {_cell(majority)} | {_cell(patterns)} | {yielded} "
                      f"| {_cell(_top(b['actions']))} ({b['frame']}) |")
