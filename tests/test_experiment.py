@@ -10,6 +10,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import yaml
 
 from sitl_bridge.cli import main as cli
 from sitl_bridge.data_paths import worlds_dir
@@ -142,6 +143,7 @@ def _experiment(folder: Path, extra: str = "") -> Path:
       thesis: {{shorthand: E, result: stable, source: "thesis Table 3"}}
   comparisons:
     - curriculum: {curriculum.name}
+      control: true
   report: {{behaviour_episodes: 1, verify_episodes: 1, distill_episodes: 1, distill_iterations: 1,
            picture_episodes: 1, backend_episodes: 1}}
 {extra}""")
@@ -220,6 +222,14 @@ def test_experiment_end_to_end(finished) -> None:
     for seed, plain in zip(comparison["with"]["seeds"], empty["seeds"], strict=True):
         run = json.loads((out / seed["run_dir"] / "run.json").read_text())
         assert run["init_from"] == str((out / plain["run_dir"] / "best.safetensors").resolve())
+    # The control runs: from scratch, exploring from the transfer runs' epsilon (the default 0.6).
+    control = comparison["control"]
+    assert control["epsilon_max"] == 0.6 and [s["seed"] for s in control["seeds"]] == [0, 1]
+    assert {"u", "p_value", "effect_size"} <= set(control["with_vs_control"])
+    for seed in control["seeds"]:
+        assert seed["run_dir"].startswith("runs/control/e_e/empty/seed")
+        assert json.loads((out / seed["run_dir"] / "run.json").read_text())["init_from"] is None
+        assert yaml.safe_load((out / seed["run_dir"] / "config.yaml").read_text())["epsilon_max"] == 0.6
 
     report = (out / "RESULTS.md").read_text()
     assert f"sitl-bridge experiment {file} --out {out}" in report
@@ -227,7 +237,8 @@ def test_experiment_end_to_end(finished) -> None:
     for figure in ("figures/empty.png", "figures/transfer_e_e.png", "figures/transfer_e_e_with_runs.png"):
         assert f"({figure})" in report and (out / figure).stat().st_size > 10_000
     meta = json.loads((out / "experiment.json").read_text())
-    assert meta["training"][-1]["trained"] == 4 and meta["eval_episodes"] == 3
+    assert meta["training"][-1]["trained"] == 6 and meta["eval_episodes"] == 3
+    assert "| e_e | 0.6 | 2 |" in report  # the control row
 
 
 def test_resume_trains_only_the_half_finished_run(finished, tmp_path) -> None:
@@ -256,5 +267,6 @@ def test_resume_trains_only_the_half_finished_run(finished, tmp_path) -> None:
     assert episodes == [0, 1]  # resumed after episode 1 in the same run directory: no repeat, no gap
     summary = {(r["point"], r["seed"]): r["status"] for r in json.loads((out / "runs" / "summary.json").read_text())}
     assert summary == {("empty", 0): "skipped", ("empty", 1): "done", ("e_e/empty", 0): "skipped",
-                       ("e_e/empty", 1): "skipped"}
+                       ("e_e/empty", 1): "skipped", ("e_e/control/empty", 0): "skipped",
+                       ("e_e/control/empty", 1): "skipped"}
     assert json.loads((out / "experiment.json").read_text())["training"][-1]["trained"] == 1

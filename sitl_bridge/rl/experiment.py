@@ -14,6 +14,7 @@ An experiment file (`experiments/thesis.yaml`)::
       comparisons:                    # with vs without the earlier network, same seeds
         - curriculum: ../worlds/curricula/er_te.yaml
           thesis: {result: "about as many episodes with as without", source: "thesis 7.2"}
+          control: true               # also from scratch, exploring from the transfer runs' epsilon
       report: {behaviour_episodes: 10, backend_episodes: 10}   # the report's own flights (`ReportSettings`)
 
 World and curriculum paths are relative to the current directory, or else to the experiment
@@ -21,12 +22,16 @@ file. A comparison's curriculum names scenarios of the list in order; its first 
 the plain runs of that scenario, each later stage trains again, seed by seed, from the previous
 stage's run of the same seed (its best checkpoint, `--init-from`), with the scenario's overrides
 and then the stage's. The last stage's transfer runs are compared with the plain runs of that
-scenario.
+scenario. A transfer run starts exploring at its `transfer_epsilon_max` (the thesis: 0.45-0.8),
+the plain run at `epsilon_max` (1.0), so the two differ in more than the network; with `control:
+true` the target is also trained from scratch starting at the transfer runs' epsilon (the
+control runs), which separates what the earlier network gives from what less exploration gives.
 
 Layout under `--out DIR`::
 
     DIR/runs/scenarios/<stem>/seed<N>/<run dir>, done.json      plain runs (sweep job folders)
     DIR/runs/transfer/<comparison>/<stem>/seed<N>/...           transfer runs
+    DIR/runs/control/<comparison>/<stem>/seed<N>/...            control runs (`control: true`)
     DIR/runs/summary.json                                       the last invocation's sweep results
     DIR/runs/invocations.jsonl                                  every invocation: workers, counts
 
@@ -80,6 +85,8 @@ class ComparisonSpec:
     """Each stage's own `train:` overrides (applied after the scenario's)."""
     curriculum: str
     thesis: dict[str, str] = field(default_factory=dict)
+    control: bool = False
+    """Also train the target from scratch with the transfer runs' starting epsilon."""
 
     @property
     def target(self) -> str:
@@ -153,7 +160,7 @@ def load_experiment(path: str | Path) -> Experiment:
     by_world = {s.world: s.stem for s in scenarios}
     comparisons: list[ComparisonSpec] = []
     for item in node.get("comparisons", []).list():
-        item.reject_unknown({"curriculum", "thesis"})
+        item.reject_unknown({"curriculum", "thesis", "control"})
         file_node = item.get("curriculum")
         file = _existing(file_node, base)
         curriculum = load_curriculum(file)  # checks that every stage's network fits the next
@@ -168,7 +175,7 @@ def load_experiment(path: str | Path) -> Experiment:
             raise file_node.error("a curriculum of at least two stages, with a name no other comparison has")
         comparisons.append(ComparisonSpec(curriculum.name, tuple(stems),
                                           tuple(dict(s.overrides) for s in curriculum.stages), file,
-                                          _thesis(item.get("thesis", {}))))
+                                          _thesis(item.get("thesis", {})), item.get("control", False).boolean()))
     return Experiment(
         name=node.get("name", Path(path).stem).string(),
         source=str(path),
@@ -219,6 +226,10 @@ def scenario_root(out: str | Path) -> Path:
 
 def transfer_root(out: str | Path, comparison: str) -> Path:
     return Path(out) / "runs" / "transfer" / comparison
+
+
+def control_root(out: str | Path, comparison: str) -> Path:
+    return Path(out) / "runs" / "control" / comparison
 
 
 def job_folder(root: Path, stem: str, seed: int) -> Path:
@@ -296,6 +307,10 @@ def run_experiment(experiment: Experiment, out: str | Path, *, workers: int = 1,
                 jobs += _transfer_jobs(experiment, out, comparison, stage, say)
         say(f"experiment {experiment.name}: {len(jobs)} transfer runs (stage {stage + 1})")
         results += run(jobs)
+    jobs = [job for comparison in comparisons if comparison.control for job in _control_jobs(experiment, out, comparison)]
+    if jobs:
+        say(f"experiment {experiment.name}: {len(jobs)} control runs")
+        results += run(jobs)
     sweep.write_summary(out / "runs", results)
     _log_invocation(out, workers=workers, backend=backend, only=only, results=results)
     return results
@@ -329,6 +344,25 @@ def invocations(out: str | Path) -> list[dict[str, Any]]:
         except ValueError:
             continue
     return rows
+
+
+def target_overrides(experiment: Experiment, comparison: ComparisonSpec) -> dict[str, Any]:
+    """The `train:` overrides of the comparison's transfer runs (the scenario's, then the stage's)."""
+    return {**experiment.scenario(comparison.target).overrides, **comparison.stage_overrides[-1]}
+
+
+def control_epsilon(experiment: Experiment, comparison: ComparisonSpec) -> float:
+    """Where the transfer runs start exploring: the control runs start there too."""
+    world = experiment.scenario(comparison.target).world
+    return load_train_config(world, target_overrides(experiment, comparison)).transfer_epsilon_max
+
+
+def _control_jobs(experiment: Experiment, out: Path, comparison: ComparisonSpec) -> list[sweep.SweepJob]:
+    scenario = experiment.scenario(comparison.target)
+    overrides = {**target_overrides(experiment, comparison), "epsilon_max": control_epsilon(experiment, comparison)}
+    jobs = sweep.plan(scenario.world, experiment.seeds, [(scenario.stem, overrides)],
+                      control_root(out, comparison.name), autopilot=experiment.autopilot)
+    return [dataclasses.replace(job, point=f"{comparison.name}/control/{scenario.stem}") for job in jobs]
 
 
 def _transfer_jobs(experiment: Experiment, out: Path, comparison: ComparisonSpec, stage: int,

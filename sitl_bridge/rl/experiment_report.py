@@ -197,6 +197,22 @@ def _transfer_section(results: dict[str, Any]) -> list[str]:
             f"{_num(wo['episodes_to_90_median'])} | {_num(c['u'], 1)} | {_p(c['p_value'])} "
             f"| {_num(c['effect_size'], 2)} | {_answer(c)} | {_cell(_thesis_note(c.get('thesis') or {}))} |")
     lines.append("")
+    controls = {name: c["control"] for name, c in transfer.items() if c.get("control")}
+    if controls:
+        lines += ["A transfer run starts exploring at its `transfer_epsilon_max`, a run from scratch at 1.0. The control "
+                  "runs train from scratch starting at the transfer runs' epsilon, so with vs control isolates what "
+                  "the earlier network gives:", "",
+                  "| comparison | control epsilon start | seeds | success control | reached 90 % "
+                  "| episodes to 90 % median with / control | U | p | effect size | answer |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for name, k in controls.items():
+            test = k["with_vs_control"]
+            lines.append(f"| {name} | {k['epsilon_max']:g} | {len(k['seeds'])} "
+                         f"| {_pct(k['success_mean'])}{_ci(k['success_ci95'])} | {k['reached_90']} "
+                         f"| {_num(transfer[name]['with']['episodes_to_90_median'])} / {_num(k['episodes_to_90_median'])} "
+                         f"| {_num(test['u'], 1)} | {_p(test['p_value'])} | {_num(test['effect_size'], 2)} "
+                         f"| {_answer(test)} |")
+        lines.append("")
     for name, c in transfer.items():
         figures = [f"[{c[k]}]({c[k]})" for k in ("figure", "figure_with_runs") if c.get(k)]
         lines.append(f"- {name}: " + (", ".join(figures) if figures else "no figure (no finished runs)"))

@@ -5,7 +5,8 @@ episodes and wall time its periodic evaluations took to reach 90 %, per scenario
 results.json holds one object per scenario keyed by the scenario file's stem (`seeds`: per-seed
 `seed`, `greedy_success`, `collision_rate`, `episodes_to_90`, `wall_s`; `success_mean`,
 `success_ci95`), `transfer` (per comparison: `with`, `without`, `test`, `p_value`,
-`effect_size`), and `rules`, `trees` and `backends` (the policies flown on each autopilot
+`effect_size`, and with `control: true` a `control` summary with its `epsilon_max` and
+`with_vs_control`, the same test of with against it), and `rules`, `trees` and `backends` (the policies flown on each autopilot
 backend) when the modules that make them are installed (see `SECTION_HOOKS`). Numbers are plain JSON; an undefined one (no run, one seed) is null.
 
 Definitions (also printed in RESULTS.md):
@@ -41,6 +42,8 @@ from sitl_bridge.rl.experiment import (
     ComparisonSpec,
     Experiment,
     ReportSettings,
+    control_epsilon,
+    control_root,
     finished,
     job_folder,
     run_of,
@@ -247,6 +250,9 @@ def collect(experiment: Experiment, out: str | Path, *, workers: int = 1,
         for seed in experiment.seeds:
             folders[(f"transfer:{comparison.name}", str(seed))] = stage_folder(
                 out, comparison, len(comparison.stems) - 1, seed)
+            if comparison.control:
+                folders[(f"control:{comparison.name}", str(seed))] = job_folder(
+                    control_root(out, comparison.name), comparison.target, seed)
     done = {key: path for key, path in folders.items() if finished(path) and run_of(path) is not None}
     tasks = {key: EvalTask(str(path), str(run_of(path)), int(key[1]), experiment.eval_episodes, experiment.autopilot)
              for key, path in done.items()}
@@ -265,20 +271,26 @@ def collect(experiment: Experiment, out: str | Path, *, workers: int = 1,
         seeds, missing = group(scenario.stem)
         results[scenario.stem] = {"world": _relative(Path(scenario.world), Path.cwd()), **summarize_seeds(seeds),
                                   "unfinished": missing, "thesis": scenario.thesis}
-    results["transfer"] = {c.name: _comparison(c, results, group) for c in experiment.comparisons}
+    results["transfer"] = {c.name: _comparison(experiment, c, results, group) for c in experiment.comparisons}
     return results
 
 
-def _comparison(comparison: ComparisonSpec, results: dict[str, Any],
+def _comparison(experiment: Experiment, comparison: ComparisonSpec, results: dict[str, Any],
                 group: Callable[[str], tuple[list[dict[str, Any]], list[int]]]) -> dict[str, Any]:
     with_seeds, missing = group(f"transfer:{comparison.name}")
     without = results[comparison.target]
     with_summary = {**summarize_seeds(with_seeds), "unfinished": missing}
     without_summary = {k: v for k, v in without.items() if k not in ("world", "thesis")}
-    return {"stages": list(comparison.stems), "from": comparison.stems[-2], "to": comparison.target,
-            "curriculum": comparison.curriculum, "thesis": comparison.thesis,
-            "with": with_summary, "without": without_summary,
-            **compare(with_seeds, without["seeds"])}
+    entry = {"stages": list(comparison.stems), "from": comparison.stems[-2], "to": comparison.target,
+             "curriculum": comparison.curriculum, "thesis": comparison.thesis,
+             "with": with_summary, "without": without_summary,
+             **compare(with_seeds, without["seeds"])}
+    if comparison.control:
+        control_seeds, control_missing = group(f"control:{comparison.name}")
+        entry["control"] = {**summarize_seeds(control_seeds), "unfinished": control_missing,
+                            "epsilon_max": control_epsilon(experiment, comparison),
+                            "with_vs_control": compare(with_seeds, control_seeds)}
+    return entry
 
 
 def add_sections(results: dict[str, Any], out: str | Path, hooks: dict[str, str] | None = None, *,
