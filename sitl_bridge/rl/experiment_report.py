@@ -68,6 +68,9 @@ def write_figures(results: dict[str, Any], out: str | Path, say: Callable[[str],
             draw(f"transfer_{name}_with_runs", comparison, "figure_with_runs", lambda p, d=with_dirs: plot_runs(d, p))
         groups = {f"with the {comparison['from']} network": with_dirs,
                   "without (trained from scratch)": dirs(comparison["without"])}
+        if comparison.get("control"):
+            control = comparison["control"]
+            groups[f"control (from scratch, epsilon from {control['epsilon_max']:g})"] = dirs(control)
         if any(groups.values()):
             draw(f"transfer_{name}", comparison, "figure", lambda p, g=groups, c=comparison: plot_greedy_groups(
                 g, p, f"{c['to']}: greedy success with vs without the {c['from']} network (same seeds)"))
