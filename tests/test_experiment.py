@@ -16,7 +16,7 @@ from sitl_bridge.cli import main as cli
 from sitl_bridge.data_paths import worlds_dir
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.rl.experiment import load_experiment, selected
-from sitl_bridge.rl.experiment_results import compare, learning_time
+from sitl_bridge.rl.experiment_results import compare, learning_time, summarize_seeds
 from sitl_bridge.rl.stats import mann_whitney, mean_ci95, wilson_interval
 
 pytest.importorskip("scipy")
@@ -88,9 +88,19 @@ def test_learning_time_from_the_logs(tmp_path) -> None:
     assert times["episodes_to_90"] == 15
     assert times["wall_s"] == pytest.approx(15 * 0.5 + 1.0 + 3.0 + 4.0)
     assert times["wall_total_s"] == pytest.approx(20 * 0.5 + 1.0 + 3.0 + 4.0 + 5.0)
-    assert times["episodes"] == 20
+    assert times["episodes"] == 20 and times["last_eval_success"] == 1.0
     (tmp_path / "evals.jsonl").write_text(json.dumps({"after_episodes": 5, "success_rate": 0.2}) + "\n")
     assert learning_time(tmp_path)["episodes_to_90"] is None and learning_time(tmp_path)["wall_s"] is None
+
+
+def test_held_counts_the_seeds_still_at_90_in_their_last_evaluation() -> None:
+    def seed(reached: int | None, last: float) -> dict:
+        return {"greedy_success": last, "collision_rate": 0.0, "episodes_to_90": reached, "wall_s": 1.0,
+                "last_eval_success": last}
+
+    # reached and held; reached and collapsed to 60 %; never reached (not counted either way)
+    summary = summarize_seeds([seed(100, 0.95), seed(200, 0.6), seed(None, 0.5)])
+    assert (summary["reached_90"], summary["held_90"]) == (2, 1)
 
 
 def test_trainer_keeps_the_checkpoint_of_its_best_evaluation(tmp_path) -> None:

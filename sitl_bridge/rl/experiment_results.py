@@ -142,7 +142,8 @@ def _jsonl(path: Path) -> list[dict]:
 
 def learning_time(run_dir: str | Path, threshold: float = THRESHOLD) -> dict[str, Any]:
     """From a run's logs: episodes trained and wall time when its periodic greedy evaluation
-    first reached `threshold` (None if never), the total wall time and episodes trained.
+    first reached `threshold` (None if never), the total wall time and episodes trained, and the
+    success of its last periodic evaluation (where training ended: held, or collapsed).
     Evaluations repeated after a resume (same episode count) count once, the last one."""
     run_dir = Path(run_dir)
     evals = {int(e["after_episodes"]): e for e in _jsonl(run_dir / EVALS_FILE) if "after_episodes" in e}
@@ -155,8 +156,9 @@ def learning_time(run_dir: str | Path, threshold: float = THRESHOLD) -> dict[str
         return (math.fsum(w for e, w in episode_wall.items() if e < episodes)
                 + math.fsum(float(e.get("wall_time_s", 0.0)) for n, e in evals.items() if n <= episodes))
 
+    last = evals[max(evals)]["success_rate"] if evals else None
     return {"episodes_to_90": reached, "wall_s": None if reached is None else wall_until(reached),
-            "wall_total_s": wall_until(math.inf), "episodes": len(episode_wall)}
+            "wall_total_s": wall_until(math.inf), "episodes": len(episode_wall), "last_eval_success": last}
 
 
 def seed_record(job_dir: Path, seed: int, evaluation: dict[str, Any], out: Path) -> dict[str, Any]:
@@ -176,6 +178,7 @@ def seed_record(job_dir: Path, seed: int, evaluation: dict[str, Any], out: Path)
         "wall_s": times["wall_s"],
         "wall_total_s": times["wall_total_s"],
         "episodes": times["episodes"],
+        "last_eval_success": times["last_eval_success"],
         "budget": config.episodes,
         "checkpoint_episode": evaluation["checkpoint_episode"],
         "run_dir": _relative(run_dir, out),
@@ -192,12 +195,13 @@ def _relative(path: Path, out: Path) -> str:
 # -- groups of seeds ------------------------------------------------------------------------
 def summarize_seeds(seeds: list[dict[str, Any]]) -> dict[str, Any]:
     """Mean and 95 % t-interval of greedy success over seeds (clipped to [0, 1]), mean collision
-    rate, and how many seeds reached 90 % with the median episodes and wall time they took."""
+    rate, and how many seeds reached 90 % with the median episodes and wall time they took, and
+    how many of those were still at 90 % in their last periodic evaluation (`held_90`)."""
     from sitl_bridge.rl.stats import mean_ci95
 
     if not seeds:
         return {"seeds": [], "success_mean": None, "success_ci95": None, "collision_mean": None,
-                "reached_90": 0, "episodes_to_90_median": None, "wall_s_median": None}
+                "reached_90": 0, "held_90": 0, "episodes_to_90_median": None, "wall_s_median": None}
     mean, interval = mean_ci95([s["greedy_success"] for s in seeds])
     reached = [s for s in seeds if s["episodes_to_90"] is not None]
     return {
@@ -206,6 +210,7 @@ def summarize_seeds(seeds: list[dict[str, Any]]) -> dict[str, Any]:
         "success_ci95": None if interval is None else [max(0.0, interval[0]), min(1.0, interval[1])],
         "collision_mean": math.fsum(s["collision_rate"] for s in seeds) / len(seeds),
         "reached_90": len(reached),
+        "held_90": sum((s.get("last_eval_success") or 0.0) >= THRESHOLD for s in reached),
         "episodes_to_90_median": _median([s["episodes_to_90"] for s in reached]),
         "wall_s_median": _median([s["wall_s"] for s in reached]),
     }
