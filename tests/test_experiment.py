@@ -191,6 +191,15 @@ def test_experiment_file_errors_are_one_line(tmp_path) -> None:
         load_experiment(bad)
     with pytest.raises(ConfigError, match="--only: expected scenario stems"):
         selected(load_experiment(_experiment(tmp_path)), ["window"])
+    # A scenario may have seeds of its own (a baseline), but not one a comparison pairs seed by seed.
+    own = worlds_dir() / "random_goal.yaml"
+    bad.write_text(f"experiment:\n  seeds: 0-9\n  scenarios:\n    - world: {EMPTY}\n    - world: {own}\n"
+                   f"      seeds: 0-2\n")
+    experiment = load_experiment(bad)
+    assert [experiment.seeds_of(s) for s in experiment.scenarios] == [tuple(range(10)), (0, 1, 2)]
+    bad.write_text(bad.read_text() + f"  comparisons:\n    - curriculum: {other.name}\n")
+    with pytest.raises(ConfigError, match="seeds: of its own"):
+        load_experiment(bad)
 
 
 # -- end to end ------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ An experiment file (`experiments/thesis.yaml`)::
       scenarios:
         - world: ../worlds/random_goal.yaml
           train: {episodes: 1500}     # overrides of that world's train: section (the budget)
+          seeds: 0-2                  # optional: its own seeds (a baseline), not in a comparison
           thesis: {shorthand: ER, result: "stable", source: "thesis Table 3"}   # shown beside ours
       comparisons:                    # with vs without the earlier network, same seeds
         - curriculum: ../worlds/curricula/er_te.yaml
@@ -72,6 +73,8 @@ class ScenarioSpec:
     overrides: dict[str, Any]
     """Overrides of the world's `train:` section (e.g. the episodes budget)."""
     thesis: dict[str, str] = field(default_factory=dict)
+    seeds: tuple[int, ...] | None = None
+    """Its own seeds (e.g. fewer for a baseline), else the experiment's."""
 
 
 @dataclass(frozen=True)
@@ -135,6 +138,10 @@ class Experiment:
     def scenario(self, stem: str) -> ScenarioSpec:
         return next(s for s in self.scenarios if s.stem == stem)
 
+    def seeds_of(self, scenario: ScenarioSpec) -> tuple[int, ...]:
+        """The seeds `scenario` trains on: its own `seeds:`, else the experiment's."""
+        return self.seeds if scenario.seeds is None else scenario.seeds
+
 
 def load_experiment(path: str | Path) -> Experiment:
     """Parse and check an experiment file (worlds, train overrides, curricula and their input
@@ -148,7 +155,7 @@ def load_experiment(path: str | Path) -> Experiment:
     node.reject_unknown({"name", "seeds", "eval_episodes", "autopilot", "scenarios", "comparisons", "report"})
     scenarios: list[ScenarioSpec] = []
     for item in node.get("scenarios").list(min_len=1):
-        item.reject_unknown({"world", "train", "thesis"})
+        item.reject_unknown({"world", "train", "thesis", "seeds"})
         world = str(Path(world_path(item.get("world"), base)).resolve())
         train = item.get("train", None)
         parse_train_node(train, load_train_config(world))  # a typo fails now, not after hours
@@ -156,7 +163,8 @@ def load_experiment(path: str | Path) -> Experiment:
         if stem in RESERVED or any(s.stem == stem for s in scenarios):
             raise item.get("world").error(f"a scenario file whose stem is unique and not one of "
                                           f"{', '.join(sorted(RESERVED))}")
-        scenarios.append(ScenarioSpec(world, stem, dict(train.value or {}), _thesis(item.get("thesis", {}))))
+        seeds = tuple(_seeds(item.get("seeds"))) if item.has("seeds") else None
+        scenarios.append(ScenarioSpec(world, stem, dict(train.value or {}), _thesis(item.get("thesis", {})), seeds))
     by_world = {s.world: s.stem for s in scenarios}
     comparisons: list[ComparisonSpec] = []
     for item in node.get("comparisons", []).list():
@@ -173,6 +181,9 @@ def load_experiment(path: str | Path) -> Experiment:
             stems.append(stem)
         if len(stems) < 2 or any(c.name == curriculum.name for c in comparisons):
             raise file_node.error("a curriculum of at least two stages, with a name no other comparison has")
+        if any(s.seeds is not None for s in scenarios if s.stem in stems):
+            raise file_node.error("a curriculum of scenarios on the experiment's seeds (a comparison pairs them "
+                                  "seed by seed; one of its scenarios has seeds: of its own)")
         comparisons.append(ComparisonSpec(curriculum.name, tuple(stems),
                                           tuple(dict(s.overrides) for s in curriculum.stages), file,
                                           _thesis(item.get("thesis", {})), item.get("control", False).boolean()))
@@ -296,7 +307,7 @@ def run_experiment(experiment: Experiment, out: str | Path, *, workers: int = 1,
     jobs = []
     for scenario in experiment.scenarios:
         if scenario.stem in stems:
-            jobs += sweep.plan(scenario.world, experiment.seeds, [(scenario.stem, scenario.overrides)],
+            jobs += sweep.plan(scenario.world, experiment.seeds_of(scenario), [(scenario.stem, scenario.overrides)],
                                scenario_root(out), autopilot=experiment.autopilot)
     say(f"experiment {experiment.name}: {len(jobs)} scenario runs under {out / 'runs'}")
     results = run(jobs)

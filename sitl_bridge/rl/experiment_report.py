@@ -122,7 +122,7 @@ def render(results: dict[str, Any], meta: dict[str, Any]) -> str:
         f"Written {meta['written']} by sitl-bridge {meta['version']}"
         + (f", commit `{meta['git_commit']}`" if meta.get("git_commit") else "") + ".",
         "",
-        f"Seeds {meta['seeds_text']} per scenario; each finished run's best checkpoint flown greedily for "
+        f"Seeds {meta['seeds_text']} per scenario{_own_seeds(meta)}; each finished run's best checkpoint flown greedily for "
         f"{meta['eval_episodes']} episodes on held-out seeds (definitions at the end).",
         "",
     ]
@@ -132,6 +132,17 @@ def render(results: dict[str, Any], meta: dict[str, Any]) -> str:
     lines += _trees_section(results, meta)
     lines += _per_seed(results) + _definitions(meta)
     return "\n".join(lines) + "\n"
+
+
+def _own_seeds(meta: dict[str, Any]) -> str:
+    """` (two_drones_empty: 0, 1, 2)`: the scenarios with seeds of their own."""
+    own = meta.get("scenario_seeds") or {}
+    return f" ({'; '.join(f'`{k}`: {_seed_text(v)}' for k, v in own.items())})" if own else ""
+
+
+def _seed_text(seeds: list[int]) -> str:
+    contiguous = list(seeds) == list(range(seeds[0], seeds[-1] + 1))
+    return f"{seeds[0]}-{seeds[-1]}" if contiguous and len(seeds) > 1 else ", ".join(map(str, seeds))
 
 
 def _scenario_table(results: dict[str, Any]) -> list[str]:
@@ -558,11 +569,10 @@ def meta_of(experiment: Experiment, out: str | Path, command: str, sections_not_
     from sitl_bridge.rl.run_dir import source_commit
 
     seeds = experiment.seeds
-    contiguous = list(seeds) == list(range(seeds[0], seeds[-1] + 1))
     return {
         "name": experiment.name, "file": experiment.source, "command": command,
-        "seeds": list(seeds), "seeds_text": f"{seeds[0]}-{seeds[-1]}" if contiguous and len(seeds) > 1
-        else ", ".join(map(str, seeds)),
+        "seeds": list(seeds), "seeds_text": _seed_text(list(seeds)),
+        "scenario_seeds": {s.stem: list(s.seeds) for s in experiment.scenarios if s.seeds is not None},
         "eval_episodes": experiment.eval_episodes, "threshold": THRESHOLD, "eval_seed_base": EVAL_SEED_BASE,
         "autopilot": experiment.autopilot, "training": invocations(out), "version": __version__,
         "git_commit": source_commit(), "written": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

@@ -248,8 +248,10 @@ def collect(experiment: Experiment, out: str | Path, *, workers: int = 1,
     evaluated); runs not finished are listed per scenario as `unfinished` seeds."""
     out = Path(out)
     folders: dict[tuple[str, str], Path] = {}  # (group, seed) -> job folder; group: stem or comparison
+    planned: dict[str, tuple[int, ...]] = {}  # group -> its seeds
     for scenario in experiment.scenarios:
-        for seed in experiment.seeds:
+        planned[scenario.stem] = experiment.seeds_of(scenario)
+        for seed in planned[scenario.stem]:
             folders[(scenario.stem, str(seed))] = job_folder(scenario_root(out), scenario.stem, seed)
     for comparison in experiment.comparisons:
         for seed in experiment.seeds:
@@ -267,8 +269,9 @@ def collect(experiment: Experiment, out: str | Path, *, workers: int = 1,
     records = {key: seed_record(done[key], int(key[1]), evaluations[key], out) for key in done}
 
     def group(name: str) -> tuple[list[dict[str, Any]], list[int]]:
-        seeds = [records[(name, str(s))] for s in experiment.seeds if (name, str(s)) in records]
-        missing = [s for s in experiment.seeds if (name, str(s)) not in records]
+        wanted = planned.get(name, experiment.seeds)
+        seeds = [records[(name, str(s))] for s in wanted if (name, str(s)) in records]
+        missing = [s for s in wanted if (name, str(s)) not in records]
         return seeds, missing
 
     results: dict[str, Any] = {}
