@@ -402,6 +402,10 @@ def test_who_dives_follows_a_priority_convention_that_can_differ_by_seed() -> No
                                                                                    facts.layout))}
     dive = rules["dive_under"]
     assert dive.when[0] == {"feature": "own_priority", "op": ">=", "value": 0.5}
+    # It ends at the height difference the networks built while the other was ahead (1.1 m: 2.5
+    # against 1.4), so a rule flying it stops descending there instead of into the ground.
+    assert dive.when[-1] == {"feature": "travel_others[2]", "op": "<", "value": 1.1}
+    assert "not yet 1.1 m below it: descend below it" in dive.text
     assert (dive.support_seeds, dive.support_episodes) == (3, 6)
     assert "1 other seed(s) the drone without right of way" in dive.note
     assert dive.action_name == "down" and dive.in_yaml

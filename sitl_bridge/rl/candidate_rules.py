@@ -212,6 +212,35 @@ def _drone_condition(rows: np.ndarray, facts: ScenarioFacts, manoeuvre: str) -> 
     return when, situation
 
 
+def _vertical_stop(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
+                   facts: ScenarioFacts, runs: set[str]) -> dict | None:
+    """For a climb over or a dive under another drone: the condition that ends it, the other
+    drone not yet as far below / above as the networks took it (the median, over the episodes of
+    the kept runs, of the largest height difference built while the other was still ahead).
+    Without it a rule keeps descending as long as the other is ahead (TE: into the ground)."""
+    if manoeuvre not in ("climb_over", "dive_under") or "travel_others" not in facts.layout:
+        return None
+    ahead, up = facts.layout["travel_others"].start + 1, facts.layout["travel_others"].start + 2
+    sign = 1.0 if manoeuvre == "dive_under" else -1.0  # the other above me (dive) or below (climb)
+    gaps = []
+    for episode in analysis.episodes:
+        if not episode.success or episode.run not in runs:
+            continue
+        for d in episode.drones:
+            obs = observations.get((episode.run, episode.episode, d.drone))
+            if d.manoeuvre != manoeuvre or d.trigger_step is None or obs is None:
+                continue
+            rows = np.asarray(obs[d.trigger_step:], dtype=float)
+            rows = rows[rows[:, ahead] > 0.0]
+            if len(rows):
+                gaps.append(float((sign * rows[:, up]).max()))
+    gap = math.floor(float(np.median(gaps)) / THRESHOLD_STEP + 1e-9) * THRESHOLD_STEP if gaps else 0.0
+    if gap <= 0.0:
+        return None
+    feature = _feature(facts.layout, "travel_others", 2)
+    return {"feature": feature, "op": "<" if sign > 0 else ">", "value": round(sign * gap, 6)}
+
+
 def _lidar_condition(rows: np.ndarray, facts: ScenarioFacts) -> tuple[list[dict], str] | None:
     """The lidar ray that read shortest at every trigger, below the longest such reading."""
     if "lidar" not in facts.layout:
@@ -266,6 +295,11 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
             when.insert(0, {"feature": _feature(facts.layout, "own_priority", 0),
                             "op": ">=" if convention else "<", "value": 0.5})
             condition = when, situation + (" and own right of way" if convention else " and no right of way")
+        stop = _vertical_stop(analysis, manoeuvre, observations, facts, set(runs)) if about_drone else None
+        if condition is not None and stop is not None:
+            when, situation = condition
+            where = "below" if manoeuvre == "dive_under" else "above"
+            condition = when + [stop], f"{situation}, not yet {abs(stop['value']):g} m {where} it"
     if condition is None:
         rule.flyable = False
         rule.text = f"{'another drone near' if about_drone else 'an obstacle ahead'}: {doing}"
