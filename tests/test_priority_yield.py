@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import yaml
 
 from sitl_bridge.envs import make_parallel_env, worlds_dir
@@ -39,13 +40,13 @@ YIELD_RULES = {
 }
 
 
-def _swapped(tmp_path: Path) -> Path:
+def _swapped(tmp_path: Path, world: Path = WORLD) -> Path:
     """The same scenario with the two vehicles' spawns (and so their goals) exchanged."""
-    data = yaml.safe_load(WORLD.read_text())
+    data = yaml.safe_load(world.read_text())
     first, second = data["world"]["vehicles"]
     first["spawn"], second["spawn"] = second["spawn"], first["spawn"]
     first["goal"], second["goal"] = second["goal"], first["goal"]
-    path = tmp_path / "two_drones_swapped.yaml"
+    path = tmp_path / f"{world.stem}_swapped.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 
@@ -69,3 +70,34 @@ def test_who_yields_follows_the_priority_rule_not_the_drone_id(tmp_path: Path) -
     assert _yielders(WORLD, rules) == [0]
     # spawn points swapped: drone 1 now starts further south and is the one that yields
     assert _yielders(_swapped(tmp_path), rules) == [1]
+
+
+TW = worlds_dir() / "two_drones_window_relative.yaml"
+TW_RUN = Path(__file__).resolve().parents[1] / "docs" / "results" / "runs" / "scenarios" / TW.stem / "seed1"
+
+
+@pytest.mark.slow
+def test_a_trained_tw_policy_goes_through_the_window_by_priority_not_by_id(tmp_path: Path) -> None:
+    """The committed TW seed-1 policy flown as shipped and with the spawns swapped: the drone that
+    goes through the window first is the one with right of way, so it changes with the spawn
+    point (session 10: 17 of 17 and 20 of 20 successful episodes in priority order)."""
+    from sitl_bridge.envs.scenario import load_scenario
+    from sitl_bridge.rl.behaviour import classify, openings
+    from sitl_bridge.rl.policy import policy_from_checkpoint
+    from sitl_bridge.rl.rollout import eval_seeds
+
+    (checkpoint,) = TW_RUN.glob("*/best.safetensors")
+    firsts = []
+    for world in (TW, _swapped(tmp_path, TW)):
+        scenario = load_scenario(world)
+        env = DronesEnv(make_parallel_env(str(world), autopilot="direct"))
+        try:
+            traces = rollout(env, policy_from_checkpoint(checkpoint), eval_seeds(1_000_000, 10))
+        finally:
+            env.env.close()
+        episodes = [e for e in classify(traces, priority_rule=scenario.task.priority,
+                                        shared_openings=openings(scenario.world.obstacles)) if e.success]
+        assert len(episodes) >= 7
+        assert sum(bool(e.order_follows_priority) for e in episodes) >= 0.9 * len(episodes)
+        firsts.append({min(e.drones, key=lambda d: d.opening_step).drone for e in episodes})
+    assert firsts == [{1}, {0}]  # drone 1 starts north (right of way); swapped, drone 0 does
