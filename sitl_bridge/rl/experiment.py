@@ -108,7 +108,7 @@ class ReportSettings:
     """Episodes a scenario's rules YAML flies in each scenario it is verified in."""
     distill_episodes: int = 50
     """Episodes per DAgger iteration of the distillation, and of the tree-vs-network comparison
-    (20 leave a rare manoeuvre, TE's sidestep, with too few states to fit, and a 5-point gap in
+    (20 leave a rare manoeuvre, TE's dive under the other drone, with too few states to fit, and a 5-point gap in
     one failed episode)."""
     distill_iterations: int = 5
     """DAgger iterations (trees fitted and scored)."""

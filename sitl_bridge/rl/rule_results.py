@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from sitl_bridge.rl import report_cache
+from sitl_bridge.rl.candidate_rules import ANALYSIS_VERSION
 from sitl_bridge.rl.experiment import RESERVED, ReportSettings
 from sitl_bridge.rl.experiment_results import EVAL_SEED_BASE
 
@@ -145,7 +146,7 @@ def _scenario_entry(stem: str, results: dict[str, Any], out: Path, simpler: list
         checkpoints={str(s["seed"]): report_cache.checkpoint_digest(out / s["run_dir"]) for s in seeds},
         worlds={s: _digest(scenario_world(results, s)) for s in [stem, *simpler]},
         behaviour_episodes=settings.behaviour_episodes, verify_episodes=settings.verify_episodes,
-        episode_seed=EVAL_SEED_BASE)
+        episode_seed=EVAL_SEED_BASE, analysis=ANALYSIS_VERSION)
     cache = out / RULES_DIR / f"{stem}.json"
     entry = report_cache.load(cache, key)
     if entry is None or not (out / entry["behaviour"]["rules_file"]).is_file():
