@@ -152,11 +152,11 @@ def _feature(layout: Mapping[str, slice], name: str, index: int) -> str:
     return name if block.stop - block.start == 1 else f"{name}[{index}]"
 
 
-def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
-              ) -> tuple[np.ndarray, list[str]]:
-    """Observations before the first step of `manoeuvre` in the successful episodes (rows), and
-    the run (seed) each row comes from."""
-    rows, runs = [], []
+def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
+                  ) -> list[tuple[str, np.ndarray]]:
+    """(run, observations from the first step of `manoeuvre` on) of every successful drone-episode
+    that shows it and has its observations recorded."""
+    found = []
     for episode in analysis.episodes:
         if not episode.success:
             continue
@@ -164,9 +164,16 @@ def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observa
             obs = observations.get((episode.run, episode.episode, d.drone))
             if d.manoeuvre == manoeuvre and d.trigger_step is not None and obs is not None \
                     and d.trigger_step < len(obs):
-                rows.append(np.asarray(obs[d.trigger_step], dtype=float))
-                runs.append(episode.run)
-    return np.array(rows), runs
+                found.append((episode.run, np.asarray(obs[d.trigger_step:], dtype=float)))
+    return found
+
+
+def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
+              ) -> tuple[np.ndarray, list[str]]:
+    """Observations before the first step of `manoeuvre` in the successful episodes (rows), and
+    the run (seed) each row comes from."""
+    found = _from_trigger(analysis, manoeuvre, observations)
+    return np.array([rows[0] for _, rows in found]), [run for run, _ in found]
 
 
 def _priority_convention(rows: np.ndarray, runs: list[str], facts: ScenarioFacts,
@@ -227,17 +234,10 @@ def _vertical_stop(analysis: BehaviourAnalysis, manoeuvre: str, observations: Ob
     ahead, up = facts.layout["travel_others"].start + 1, facts.layout["travel_others"].start + 2
     sign = 1.0 if manoeuvre == "dive_under" else -1.0  # the other above me (dive) or below (climb)
     gaps = []
-    for episode in analysis.episodes:
-        if not episode.success or episode.run not in runs:
-            continue
-        for d in episode.drones:
-            obs = observations.get((episode.run, episode.episode, d.drone))
-            if d.manoeuvre != manoeuvre or d.trigger_step is None or obs is None:
-                continue
-            rows = np.asarray(obs[d.trigger_step:], dtype=float)
-            rows = rows[rows[:, ahead] > 0.0]
-            if len(rows):
-                gaps.append(float((sign * rows[:, up]).max()))
+    for run, rows in _from_trigger(analysis, manoeuvre, observations):
+        rows = rows[rows[:, ahead] > 0.0]
+        if run in runs and len(rows):
+            gaps.append(float((sign * rows[:, up]).max()))
     gap = math.floor(float(np.median(gaps)) / THRESHOLD_STEP + 1e-9) * THRESHOLD_STEP if gaps else 0.0
     if gap <= 0.0:
         return None
