@@ -12,6 +12,7 @@ from gymnasium.utils.env_checker import check_env
 
 import sitl_bridge.envs as envs
 from sitl_bridge.envs import SINGLE_ENVS, make_env
+from sitl_bridge.envs.features import observation_layout
 
 WORLDS = Path(__file__).resolve().parents[1] / "worlds"
 
@@ -239,3 +240,46 @@ def test_module_exports_the_documented_api() -> None:
     for name in ("make_env", "make_parallel_env", "SitlEnv", "SitlParallelEnv", "load_scenario"):
         assert hasattr(envs, name)
     assert "## Action Space" in envs.SitlEnv.__doc__
+
+
+WALKER_SCENARIO = """
+world:
+  name: tmp_walker
+  description: A walker coming straight at a hovering drone, written by a test.
+  workspace: {min: [-10, -3, 0], max: [10, 3, 4]}
+  vehicles:
+    - {name: scout, model: iris, spawn: {position: [0, 0, 0.06], yaw: 0}, goal: end}
+  goals:
+    - {name: end, center: [0, 2.5, 1.5], size: [1, 1, 1]}
+  obstacles:
+    # 4.8 s of episode start (arming, takeoff) bring it from 9.5 m to 4.7 m, inside the lidar's 5 m
+    - {name: walker, shape: cylinder, radius: 0.25, height: 3.5, position: [9.5, 0, 1.75], mass: 70,
+       mover: {type: patrol, speed: 1.0, points: [[9.5, 0, 1.75], [1.5, 0, 1.75]]}}
+task:
+  max_steps: 5
+  start_altitude_m: 1.5
+  action: {speed_m_s: 1.0, duration_s: 1.0, frame: world}
+  observation:
+    - lidar: [horizontal]
+    - lidar_change: [horizontal]
+  reward: {per_step: -1}
+"""
+
+
+def test_lidar_change_shows_a_walker_coming_closer(tmp_path: Path) -> None:
+    path = tmp_path / "walker.yaml"
+    path.write_text(WALKER_SCENARIO)
+    env = make_env(path, seed=0)
+    try:
+        layout = observation_layout(env.scenario)
+        obs, _ = env.reset(seed=0)
+        assert np.all(obs[layout["lidar_change"]] == 0.0)  # nothing seen moving yet
+        east = int(np.argmin(obs[layout["lidar"]]))         # the ray that sees the walker
+        before = obs[layout["lidar"]]
+        obs, *_ = env.step(7)                               # hover while it walks 1 m closer
+        change = obs[layout["lidar_change"]]
+        assert np.allclose(change, obs[layout["lidar"]] - before, atol=1e-5)
+        assert change[east] == pytest.approx(-1.0, abs=0.15)
+        assert np.all(np.abs(np.delete(change, east)) < np.abs(change[east]))
+    finally:
+        env.close()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 from test_rl_helpers import corridor_factory, tiny_config
 
 from sitl_bridge.rl.checkpoint import BEST_CHECKPOINT, load_checkpoint, resolve_checkpoint
@@ -45,3 +46,22 @@ def test_a_damaged_best_checkpoint_falls_back_to_the_newest(tmp_path: Path) -> N
     best.write_bytes(best.read_bytes()[:-10])
     path, _, state = resolve_checkpoint(run_dir)
     assert path.parent.name == "checkpoints" and state["episode"] == 4
+
+
+def test_a_stop_is_confirmed_on_more_evaluation_episodes(tmp_path: Path) -> None:
+    config = tiny_config(episodes=2, eval_every=0, eval_episodes=2, stop_on_success=0.9,
+                         stop_confirm_episodes=3)
+    with Trainer.start(tmp_path, RunSpec(world="corridor.yaml"), config, corridor_factory(),
+                       progress=False) as trainer:
+        trainer.train()
+        # a network that always hovers (7) never reaches the goal: the short evaluation stands
+        trainer.agent.q_values = lambda obs: np.eye(8)[7]
+        assert trainer.evaluate().episodes == 2
+        # one that always flies to the goal (6) reaches the stop threshold: confirmed on 2 + 3
+        trainer.agent.q_values = lambda obs: np.eye(8)[6]
+        result = trainer.evaluate()
+        assert result.episodes == 5 and result.success_rate == 1.0
+        run_dir = trainer.run_dir
+    evals = [json.loads(line) for line in (run_dir / EVALS_FILE).read_text().splitlines()]
+    assert [e["episodes"] for e in evals[-2:]] == [2, 5]
+    assert json.loads((run_dir / BEST_FILE).read_text())["episodes"] == 5

@@ -20,6 +20,7 @@ Each list item is a name (`- velocity`) or a one-key mapping with options
 | `travel_others` | 6*count | per other drone: its position minus own, its velocity minus own, in the own travel frame (zeros if absent) | +- diagonal, +- 2 max speed |
 | `line_distance` | 1 | distance from the line through start and goal | [0, diagonal] |
 | `lidar` | rays | ray distances of the listed groups (default all three) | [0, range] |
+| `lidar_change` | rays | each ray's distance minus its distance one action earlier (0 at reset): how the surroundings moved relative to the drone | +- range |
 | `lidar_flags` | 2 | the lidar's near and crash flags (0/1) | [0, 1] |
 | `dummy` | N | zeros, to keep input sizes equal across scenarios | [-1, 1] |
 
@@ -213,17 +214,36 @@ def _line_distance(options: Node, limits: ScenarioLimits) -> Feature:
                                                           v.goal_enu_m)]))
 
 
-def _lidar(options: Node, limits: ScenarioLimits) -> Feature:
+def _lidar_groups(options: Node) -> list[str]:
+    """The ray groups a lidar feature lists (`[horizontal, up]` or `{groups: [...]}`; default all)."""
     if options.value is None:
-        groups = list(LIDAR_GROUPS)
-    elif isinstance(options.value, list):
-        groups = [item.string(LIDAR_GROUPS) for item in options.list(min_len=1)]
-    else:
-        options.reject_unknown({"groups"})
-        groups = [item.string(LIDAR_GROUPS) for item in options.get("groups").list(min_len=1)]
+        return list(LIDAR_GROUPS)
+    if isinstance(options.value, list):
+        return [item.string(LIDAR_GROUPS) for item in options.list(min_len=1)]
+    options.reject_unknown({"groups"})
+    return [item.string(LIDAR_GROUPS) for item in options.get("groups").list(min_len=1)]
+
+
+def _lidar(options: Node, limits: ScenarioLimits) -> Feature:
+    groups = _lidar_groups(options)
     size = sum(limits.lidar_rays[g] for g in groups)
     return Feature("lidar", np.zeros(size), np.full(size, limits.lidar_range_m),
                    lambda v: np.concatenate([v.lidar[g] for g in groups]))
+
+
+def _lidar_change(options: Node, limits: ScenarioLimits) -> Feature:
+    # One lidar scan cannot tell a walker coming toward the drone's path from one walking away
+    # (the street's crashes happen there); the change over the last action shows the motion.
+    groups = _lidar_groups(options)
+    size = sum(limits.lidar_rays[g] for g in groups)
+
+    def compute(v: DroneView) -> np.ndarray:
+        if v.previous_lidar is None:
+            return np.zeros(size)
+        return np.concatenate([v.lidar[g] - v.previous_lidar[g] for g in groups])
+
+    bound = np.full(size, limits.lidar_range_m)
+    return Feature("lidar_change", -bound, bound, compute)
 
 
 def _lidar_flags(options: Node, limits: ScenarioLimits) -> Feature:
@@ -262,6 +282,7 @@ FEATURES: dict[str, Callable[[Node, ScenarioLimits], Feature]] = {
     "travel_others": _travel_others,
     "line_distance": _line_distance,
     "lidar": _lidar,
+    "lidar_change": _lidar_change,
     "lidar_flags": _lidar_flags,
     "dummy": _dummy,
 }
@@ -283,6 +304,7 @@ FEATURE_MEANINGS: dict[str, tuple[str, str]] = {
                       "up of the own travel direction)", "m, m/s"),
     "line_distance": ("distance from the start-goal line", "m"),
     "lidar": ("ray distances (range when nothing is hit)", "m"),
+    "lidar_change": ("each ray's distance minus its distance one action earlier", "m"),
     "lidar_flags": ("near, crash flags of the lidar", "0/1"),
     "dummy": ("zeros (input padding for transfer)", "-"),
 }

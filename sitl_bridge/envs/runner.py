@@ -26,6 +26,7 @@ from sitl_bridge.envs.task import EndConfig
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.frames import quat_to_euler
+from sitl_bridge.sensors.lidar import LidarScan
 from sitl_bridge.world import GoalPlacement
 
 OUTCOMES = ("goal", "crash", "out", "timeout")
@@ -53,6 +54,11 @@ def _inside(goal: GoalPlacement, position: np.ndarray, margin_m: float) -> bool:
     center = np.asarray(goal.center_m)
     half = np.asarray(goal.size_m) / 2.0 + margin_m
     return bool(np.all(np.abs(position - center) <= half))
+
+
+def _rays(scan: LidarScan) -> dict[str, np.ndarray]:
+    """A `LidarScan`'s ray distances by group, as `DroneView.lidar` holds them."""
+    return {"horizontal": scan.horizontal_m, "up": scan.up_m, "down": scan.down_m}
 
 
 class EpisodeRunner:
@@ -107,7 +113,7 @@ class EpisodeRunner:
         self._paths = self._path_fields(snapshot)
         results = []
         for i in range(self.num_drones):
-            view = self._view(i, snapshot, self._starts[i], crashed=False)
+            view = self._view(i, snapshot, snapshot, crashed=False)
             results.append(DroneResult(self._observe(view), 0.0, False, False,
                                        self._info(view, None, {}, None)))
         self._last = results
@@ -143,7 +149,7 @@ class EpisodeRunner:
         results = []
         for i in range(self.num_drones):
             if self.done[i]:
-                view = self._view(i, snapshot, before.states[i].position_enu_m, crashed=False)
+                view = self._view(i, snapshot, before, crashed=False)
                 truncated = self._ended_truncated[i]
                 results.append(DroneResult(self._observe(view), 0.0, not truncated, truncated,
                                            self._info(view, self.outcomes[i], {}, None)))
@@ -239,8 +245,7 @@ class EpisodeRunner:
     def _score(self, i: int, snapshot: Snapshot, before: Snapshot, action: int | None, *, crashed: bool,
                by_drones_only: bool, flying: list[bool]) -> DroneResult:
         end = self.scenario.task.end
-        view = self._view(i, snapshot, np.asarray(before.states[i].position_enu_m, dtype=float),
-                          crashed=crashed)
+        view = self._view(i, snapshot, before, crashed=crashed)
         if not crashed and _ground_contact(view, end):
             view = dataclasses.replace(view, crashed=True)
         outcome: str | None = None
@@ -291,8 +296,8 @@ class EpisodeRunner:
             fields.append(field_)
         return fields
 
-    def _view(self, i: int, snapshot: Snapshot, previous_position: np.ndarray, *,
-              crashed: bool) -> DroneView:
+    def _view(self, i: int, snapshot: Snapshot, before: Snapshot, *, crashed: bool) -> DroneView:
+        """Drone `i` in `snapshot`, one action after `before` (at reset both are the same)."""
         end = self.scenario.task.end
         state = snapshot.states[i]
         scan = snapshot.scans[i]
@@ -303,12 +308,13 @@ class EpisodeRunner:
         return DroneView(
             index=i,
             position_enu_m=position,
-            previous_position_enu_m=np.asarray(previous_position, dtype=float),
+            previous_position_enu_m=np.asarray(before.states[i].position_enu_m, dtype=float),
             euler_enu_rad=quat_to_euler(state.quaternion_enu_flu),
             velocity_enu_m_s=np.asarray(state.velocity_enu_m_s, dtype=float),
             start_enu_m=self._starts[i],
             goal_enu_m=self._goals[i],
-            lidar={"horizontal": scan.horizontal_m, "up": scan.up_m, "down": scan.down_m},
+            lidar=_rays(scan),
+            previous_lidar=None if before is snapshot else _rays(before.scans[i]),
             priority=float(ranks[i]),
             other_priorities=ranks[others],
             others_position_enu_m=np.array([snapshot.states[j].position_enu_m for j in others],

@@ -54,6 +54,8 @@ class DroneView:
     others_in_airspace: np.ndarray | None = None
     """(k,) per other drone: still in the airspace (False once it landed at its goal under
     `end.after_goal: land`); None: all are."""
+    previous_lidar: dict[str, np.ndarray] | None = None
+    """The same rays one action earlier (None at reset: no motion seen yet)."""
     crashed: bool = False
     near_obstacle: bool = False
     reached_goal: bool = False

@@ -114,6 +114,10 @@ class TrainConfig:
     """Also evaluate greedily every this many training episodes (0 = only at the end)."""
     stop_on_success: float = 0.0
     """Stop early once a periodic greedy evaluation reaches this success rate (0 = never)."""
+    stop_confirm_episodes: int = 0
+    """Before stopping early, fly this many more evaluation episodes (the seeds that follow) and
+    stop only if all of them together still reach stop_on_success; that longer evaluation is the
+    one recorded and compared for the best checkpoint (0 = stop on the periodic one alone)."""
     checkpoints_kept: int = 3
     """Checkpoints kept on disk; older ones are deleted (the newest good one is used on resume)."""
     replay_segment_rows: int = 50_000
@@ -167,6 +171,7 @@ class TrainConfig:
             ("eval_episodes", 0 <= self.eval_episodes <= 100_000, "an integer in [0, 100000]"),
             ("eval_every", 0 <= self.eval_every <= MAX_EPISODES, f"an integer in [0, {MAX_EPISODES}]"),
             ("stop_on_success", 0.0 <= self.stop_on_success <= 1.0, "a number in [0, 1]"),
+            ("stop_confirm_episodes", 0 <= self.stop_confirm_episodes <= 100_000, "an integer in [0, 100000]"),
             ("checkpoints_kept", 2 <= self.checkpoints_kept <= 1000, "an integer in [2, 1000] (one to fall back on)"),
             ("replay_segment_rows", 1 <= self.replay_segment_rows <= MAX_REPLAY_ROWS, f"an integer in [1, {MAX_REPLAY_ROWS}]"),
             ("success_window", 1 <= self.success_window <= 1_000_000, "an integer in [1, 1000000]"),
