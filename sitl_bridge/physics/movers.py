@@ -94,6 +94,7 @@ class RandomLegs:
         self._position: Vec3 = self._start  # type: ignore[assignment]
         self._target: Vec3 = self._start  # type: ignore[assignment]
         self._velocity: Vec3 = (0.0, 0.0, 0.0)
+        self._pose: Pose | None = None  # as Patrol's: computed once per physics step
 
     @property
     def speed_m_s(self) -> float:
@@ -102,6 +103,7 @@ class RandomLegs:
     def reset(self, rng: np.random.Generator) -> None:
         self._rng = rng
         self._position = self._start  # type: ignore[assignment]
+        self._pose = None
         self._new_leg()
 
     def _new_leg(self) -> None:
@@ -117,18 +119,24 @@ class RandomLegs:
         self._velocity = tuple((t - p) * k for t, p in zip(target, self._position, strict=True))  # type: ignore[assignment]
 
     def pose(self) -> Pose:
-        vx, vy, vz = self._velocity
-        return Pose(self._position, math.atan2(vy, vx), math.atan2(vz, math.hypot(vx, vy)), self._velocity)
+        """Where the mover is now."""
+        if self._pose is None:
+            vx, vy, vz = self._velocity
+            self._pose = Pose(self._position, math.atan2(vy, vx), math.atan2(vz, math.hypot(vx, vy)),
+                              self._velocity)
+        return self._pose
 
     def advance(self, dt_s: float) -> None:
         """Move on by dt; at the leg's end start a new leg with the remaining time."""
+        self._pose = None
         remaining = dt_s
         for _ in range(10):
             d = math.dist(self._target, self._position)
             step = self.spec.speed_m_s * remaining
             if step < d:
                 k = step / d
-                self._position = tuple(p + (t - p) * k for p, t in zip(self._position, self._target, strict=True))  # type: ignore[assignment]
+                (px, py, pz), (tx, ty, tz) = self._position, self._target
+                self._position = (px + (tx - px) * k, py + (ty - py) * k, pz + (tz - pz) * k)
                 return
             self._position = self._target
             remaining -= d / self.spec.speed_m_s

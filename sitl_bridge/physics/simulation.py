@@ -392,7 +392,7 @@ class Simulation:
         self._movers: list[tuple[int, Patrol | RandomLegs]] = []
         #: per mover: the (yaw, pitch) of its last orientation and that orientation (pybullet)
         self._mover_facings: list[tuple[float, float, tuple[float, float, float, float]]] = []
-        self._mover_radii: list[float] = []
+        self._mover_reaches: list[tuple[float, float, Patrol | RandomLegs]] = []
         self._static_boxes: list[tuple[float, ...]] = []
         self._vehicle_radius_m = 0.5 * math.sqrt(sum(s * s for s in self.params.collision_box_m))
         for placement in self._layout.obstacles:
@@ -410,7 +410,9 @@ class Simulation:
             if mover is not None:
                 self._movers.append((body, mover))
                 self._mover_facings.append((math.nan, math.nan, (0.0, 0.0, 0.0, 1.0)))
-                self._mover_radii.append(_bounding_radius_m(placement.shape))
+                # its bounding radius and how far it can close in two steps (`_may_touch`)
+                self._mover_reaches.append((_bounding_radius_m(placement.shape), 2.0 * mover.speed_m_s * self.step_s,
+                                            mover))
             else:
                 lo, hi = p.getAABB(body, physicsClientId=cid)
                 self._static_boxes.append((*lo, *hi))
@@ -491,10 +493,9 @@ class Simulation:
                 ox, oy, oz = other.position
                 if (ox - x) ** 2 + (oy - y) ** 2 + (oz - z) ** 2 < pair_reach * pair_reach:
                     return True
-        for radius, (_, mover) in zip(self._mover_radii, self._movers, strict=True):
-            pose = mover.pose()
-            mx, my, mz = pose.position_m
-            mover_reach = reach + radius + 2.0 * mover.speed_m_s * self.step_s
+        for radius, closing_m, mover in self._mover_reaches:
+            mx, my, mz = mover.pose().position_m
+            mover_reach = reach + radius + closing_m
             if (mx - x) ** 2 + (my - y) ** 2 + (mz - z) ** 2 < mover_reach * mover_reach:
                 return True
         return False
