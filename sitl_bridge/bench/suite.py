@@ -23,11 +23,15 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   claims one in 0..9 through `autopilot.allocation`, never shared; `instances` says which), in env steps per
   wall second (`steps_per_s`): one PX4-backed env process against two at once, `reps` timed
   windows after one PX4 start per worker. Needs `PX4_BIN`, else `{"skipped": reason}`.
+  `cpu_bound_speedup`: the most two workers could give on this machine's cores: one px4 env
+  keeps `cores_busy_per_env` = steps/s x CPU time per env step busy (the `px4` case's
+  `cpu_ms_per_step`: this process, the simulator and MAVSDK, plus its child processes, PX4).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -99,6 +103,34 @@ def _fly(step: Callable[[], float], sim_s: float) -> float:
     return flown / (time.perf_counter() - start)
 
 
+def _cpu_s() -> tuple[float, float | None]:
+    """CPU seconds used so far by this process (all threads) and by its child processes, live
+    or ended (Linux /proc; None elsewhere): PX4 runs in children, the simulator and MAVSDK here."""
+    own = time.process_time()
+    times = os.times()
+    ended = times.children_user + times.children_system
+    try:
+        me = str(os.getpid())
+        tick = os.sysconf("SC_CLK_TCK")
+        live = 0.0
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+                if fields[1] == me:  # ppid; utime, stime: fields 11, 12 after the name
+                    live += (int(fields[11]) + int(fields[12])) / tick
+    except (OSError, ValueError):
+        return own, None
+    return own, ended + live
+
+
+def _cpu_ms_per_step(before: tuple[float, float | None], after: tuple[float, float | None],
+                     steps: float) -> dict[str, float] | None:
+    if before[1] is None or after[1] is None or steps <= 0:
+        return None
+    own, children = (after[0] - before[0]) * 1e3 / steps, (after[1] - before[1]) * 1e3 / steps
+    return {"this_process": own, "children": children, "total": own + children}
+
+
 def _random_stepper(env: Any) -> Callable[[], float]:
     """One random action per call (resets included: training pays for them too); returns the
     simulated seconds it flew."""
@@ -127,7 +159,9 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
     try:
         env.reset(seed=0)
         _fly(step, size.warmup_s)
+        before = _cpu_s()
         rtfs = [_fly(step, size.sim_s) for _ in range(size.reps)]
+        cpu = _cpu_ms_per_step(before, _cpu_s(), size.reps * size.sim_s / _step_s())
         resets = []
         for _ in range(size.resets):
             t0 = time.perf_counter()
@@ -135,8 +169,9 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
             resets.append(time.perf_counter() - t0)
     finally:
         env.close()
+    extra = {"cpu_ms_per_step": cpu} if backend != "direct" and cpu is not None else {}
     return _rtf_entry(rtfs, bare, backend=backend, estimator=estimator,
-                      steps_per_s=_spread([rtf / _step_s() for rtf in rtfs])), resets
+                      steps_per_s=_spread([rtf / _step_s() for rtf in rtfs]), **extra), resets
 
 
 def _batched_case(size: Size, bare: float) -> dict[str, Any]:
@@ -328,9 +363,26 @@ def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
         result[key] = figures
         log(f"  {key}: {_summary(figures)}  ({time.perf_counter() - t0:.0f} s)")
     result["reset_s"] = resets
+    _px4_ceiling(result)
+    if "cpu_bound_speedup" in result.get("px4_parallel", {}):
+        ceiling = result["px4_parallel"]
+        log(f"  px4_parallel: one px4 env keeps {ceiling['cores_busy_per_env']:.2f} cores busy: two can go at "
+            f"most {ceiling['cpu_bound_speedup']:.2f}x as fast on these {os.cpu_count()} cores")
     result["physics"] = _rtf_entry(bares, statistics.median(bares))  # every bare measurement of the run
     log("  reset_s: " + ", ".join(f"{k} {v['median']:.3f} s" for k, v in resets.items()))
     return result
+
+
+def _px4_ceiling(result: dict[str, Any]) -> None:
+    """`px4_parallel.cpu_bound_speedup`: one px4 env keeps `steps/s x CPU s per step` cores busy
+    (the `px4` case, one measurement); two can go at most `cores / that` times as fast (<= 2)."""
+    single, parallel = result.get("px4", {}), result.get("px4_parallel", {})
+    cpu = single.get("cpu_ms_per_step")
+    if not cpu or "workers_1" not in parallel:
+        return
+    busy_cores = single["steps_per_s"]["median"] * cpu["total"] / 1e3
+    parallel["cores_busy_per_env"] = busy_cores
+    parallel["cpu_bound_speedup"] = min(2.0, (os.cpu_count() or 1) / busy_cores)
 
 
 def _summary(figures: dict[str, Any]) -> str:
@@ -347,6 +399,10 @@ def _summary(figures: dict[str, Any]) -> str:
             f"{frac['median']:.3f} of bare")
     if "steps_per_s" in figures:
         text = f"{figures['steps_per_s']['median']:.1f} steps/s, " + text
+    if "cpu_ms_per_step" in figures:
+        cpu = figures["cpu_ms_per_step"]
+        text += (f"; CPU per env step {cpu['total']:.0f} ms ({cpu['this_process']:.0f} here, "
+                 f"{cpu['children']:.0f} in child processes)")
     return text
 
 
