@@ -12,7 +12,7 @@ from test_rl_helpers import corridor_factory, tiny_config
 
 from sitl_bridge.rl.checkpoint import BEST_CHECKPOINT, load_checkpoint, resolve_checkpoint
 from sitl_bridge.rl.run_dir import BEST_FILE, EVALS_FILE, RunSpec
-from sitl_bridge.rl.trainer import Trainer
+from sitl_bridge.rl.trainer import Trainer, selection_score
 
 
 def test_best_checkpoint_is_the_best_evaluation_and_the_runs_result(tmp_path: Path) -> None:
@@ -65,3 +65,12 @@ def test_a_stop_is_confirmed_on_more_evaluation_episodes(tmp_path: Path) -> None
     evals = [json.loads(line) for line in (run_dir / EVALS_FILE).read_text().splitlines()]
     assert [e["episodes"] for e in evals[-2:]] == [2, 5]
     assert json.loads((run_dir / BEST_FILE).read_text())["episodes"] == 5
+
+
+def test_the_best_checkpoint_ranks_evaluations_of_different_lengths_by_their_lower_bound() -> None:
+    # one length: the order of the success rates (then of the rewards), as before
+    assert selection_score(18 / 20, 20, 0.0) < selection_score(19 / 20, 20, -50.0)
+    assert selection_score(19 / 20, 20, 1.0) < selection_score(19 / 20, 20, 2.0)
+    # a confirmed 87 of 100 outranks 35 of 40 (87.5 %), and 100 of 100 outranks 20 of 20
+    assert selection_score(35 / 40, 40, 9.0) < selection_score(0.87, 100, 0.0)
+    assert selection_score(1.0, 20, 9.0) < selection_score(1.0, 100, 0.0)

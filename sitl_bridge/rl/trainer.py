@@ -55,6 +55,7 @@ from sitl_bridge.rl.prioritized import Priorities
 from sitl_bridge.rl.progress import Progress
 from sitl_bridge.rl.replay import ReplayBuffer
 from sitl_bridge.rl.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
+from sitl_bridge.rl.stats import wilson_interval
 from sitl_bridge.rl.vector_collect import VectorCollector
 
 log = logging.getLogger(__name__)
@@ -90,6 +91,14 @@ class TrainResult:
     """Wall time of this call (not of earlier sessions of a resumed run)."""
     success_rate: float
     """Rolling success rate over the last `success_window` drone-episodes."""
+
+
+def selection_score(success_rate: float, drone_episodes: int, mean_reward: float) -> tuple[float, float]:
+    """How a greedy evaluation ranks for the best checkpoint: the low end of its success rate's
+    Wilson 95 % interval, ties by mean reward. Among evaluations of one length this orders as the
+    rate itself; across lengths (`stop_confirm_episodes`) a confirmed 87 of 100 outranks 35 of 40."""
+    trials = max(int(drone_episodes), 1)
+    return wilson_interval(round(success_rate * trials), trials)[0], mean_reward
 
 
 class Trainer:
@@ -421,10 +430,10 @@ class Trainer:
         if not source.is_file():  # evaluated before the state was checkpointed: nothing to keep
             return
         best_file = self.run_dir / rd.BEST_FILE
-        score = (result.success_rate, result.mean_reward)
+        score = selection_score(result.success_rate, result.drone_episodes, result.mean_reward)
         with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
             best = json.loads(best_file.read_text())
-            if score <= (best["success_rate"], best["mean_reward"]):
+            if score <= selection_score(best["success_rate"], best["drone_episodes"], best["mean_reward"]):
                 return
         atomic_write_bytes(self.run_dir / ckpt.BEST_CHECKPOINT, source.read_bytes())
         atomic_write_json(best_file, {**result.to_dict(), "after_episodes": self.episode,
