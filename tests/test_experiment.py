@@ -289,3 +289,15 @@ def test_resume_trains_only_the_half_finished_run(finished, tmp_path) -> None:
                        ("e_e/empty", 1): "skipped", ("e_e/control/empty", 0): "skipped",
                        ("e_e/control/empty", 1): "skipped"}
     assert json.loads((out / "experiment.json").read_text())["training"][-1]["trained"] == 1
+
+
+def test_train_only_leaves_the_report_as_it_is(finished, tmp_path) -> None:
+    _, first = finished
+    out = tmp_path / "out"
+    shutil.copytree(first, out)
+    (out / "runs" / "scenarios" / "empty" / "seed1" / "done.json").unlink()
+    report = {p: t for p, t in _mtimes(out).items() if not p.startswith("runs/")}
+
+    assert cli(["experiment", str(finished[0]), "--out", str(out), "--workers", "1", "--train-only"]) == 0
+    assert (out / "runs" / "scenarios" / "empty" / "seed1" / "done.json").is_file()  # the run was finished
+    assert {p: t for p, t in _mtimes(out).items() if p in report} == report  # RESULTS.md, JSON, figures untouched

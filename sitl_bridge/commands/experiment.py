@@ -4,7 +4,8 @@ seeds), trained through the sweep machinery (local processes, or Ray tasks with 
 then each finished run's best checkpoint is evaluated greedily and DIR/RESULTS.md, DIR/results.json
 and DIR/figures/ are written. Re-running the same command skips finished runs and resumes
 unfinished ones, so an experiment may run in several parts (`--only SCENARIO...` trains some
-scenarios; the report always covers every finished run). `--report-only` trains nothing.
+scenarios; the report always covers every finished run). `--report-only` trains nothing;
+`--train-only` writes no report.
 """
 
 from __future__ import annotations
@@ -31,7 +32,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--address", help="Ray cluster address (default: start Ray's own local cluster; auto: the one 'ray start' runs here)")
     parser.add_argument("--only", nargs="+", metavar="SCENARIO",
                         help="train only these scenarios (file stems; comparisons ending in one of them too)")
-    parser.add_argument("--report-only", action="store_true", help="train nothing: evaluate and report the runs there are")
+    stage = parser.add_mutually_exclusive_group()
+    stage.add_argument("--report-only", action="store_true", help="train nothing: evaluate and report the runs there are")
+    stage.add_argument("--train-only", action="store_true",
+                       help="train (or resume) and stop: leave the report as it is (a part of the runs, "
+                            "e.g. with --only, while other parts are still training)")
     parser.add_argument("--eval-episodes", type=int, default=None,
                         help="greedy episodes per run for the reported rates (default: the file's eval_episodes)")
     parser.set_defaults(func=main)
@@ -83,6 +88,8 @@ def main(args: argparse.Namespace) -> int:
         if runs:
             print(sweep.summary_table(runs))
         failed = any(r.status == "failed" for r in runs)
+    if args.train_only:
+        return 1 if failed else 0
     results = res.collect(experiment, out, workers=args.workers if args.backend == "local" else 1, say=say)
     report.write_figures(results, out, say=say, settings=experiment.report)
     not_run = res.add_sections(results, out, settings=experiment.report, say=say)
