@@ -433,7 +433,9 @@ class Trainer:
         score = selection_score(result.success_rate, result.drone_episodes, result.mean_reward)
         with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
             best = json.loads(best_file.read_text())
-            if score <= selection_score(best["success_rate"], best["drone_episodes"], best["mean_reward"]):
+            # best.json of an older version may lack drone_episodes: its episodes then
+            trials = best.get("drone_episodes", best.get("episodes", 1))
+            if score <= selection_score(best["success_rate"], trials, best["mean_reward"]):
                 return
         atomic_write_bytes(self.run_dir / ckpt.BEST_CHECKPOINT, source.read_bytes())
         atomic_write_json(best_file, {**result.to_dict(), "after_episodes": self.episode,
