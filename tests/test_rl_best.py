@@ -67,6 +67,26 @@ def test_a_stop_is_confirmed_on_more_evaluation_episodes(tmp_path: Path) -> None
     assert json.loads((run_dir / BEST_FILE).read_text())["episodes"] == 5
 
 
+def test_an_evaluation_extended_from_a_shorter_one_equals_one_flown_whole() -> None:
+    from sitl_bridge.rl.drones_env import DronesEnv
+    from sitl_bridge.rl.evaluate import evaluate_on
+
+    env = DronesEnv(corridor_factory()(0))
+    try:
+        # a policy whose outcome depends on the start, so the episodes differ
+        def policy(obs: np.ndarray) -> int:
+            return 6 if obs[0] < 0.5 else 7
+
+        whole, whole_traces = evaluate_on(env, policy, world="corridor", episodes=5, seed=3)
+        _, short = evaluate_on(env, policy, world="corridor", episodes=2, seed=3)
+        extended, traces = evaluate_on(env, policy, world="corridor", episodes=5, seed=3, flown=short)
+    finally:
+        env.close()
+    assert extended == whole
+    assert [(t.episode, t.seed, t.actions, t.outcome) for t in traces] == \
+        [(t.episode, t.seed, t.actions, t.outcome) for t in whole_traces]
+
+
 def test_the_best_checkpoint_ranks_evaluations_of_different_lengths_by_their_lower_bound() -> None:
     # one length: the order of the success rates (then of the rewards), as before
     assert selection_score(18 / 20, 20, 0.0) < selection_score(19 / 20, 20, -50.0)

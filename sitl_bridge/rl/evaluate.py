@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -69,14 +69,22 @@ def evaluate_policy(policy: Callable[[np.ndarray], int], env_factory: EnvFactory
 
 def evaluate_on(env: DronesEnv, policy: Callable[[np.ndarray], int], *, world: str, episodes: int,
                 seed: int = 0, progress: bool = False, desc: str = "evaluation",
-                videos: Any = None) -> tuple[EvalResult, list[Trace]]:
+                videos: Any = None, flown: Sequence[Trace] = ()) -> tuple[EvalResult, list[Trace]]:
     """Fly `policy` greedily for `episodes` episodes on evaluation seeds in an open env
-    (with `progress`, a bar or periodic lines on stderr; with `videos`, recorded)."""
-    with Progress(episodes, desc, enabled=progress) as bar:
+    (with `progress`, a bar or periodic lines on stderr; with `videos`, recorded).
+
+    `flown`: the traces of a shorter evaluation of the same policy on the same seeds, which this
+    one extends: only the episodes after them are flown (greedy flights are deterministic, so
+    flying those seeds again would repeat them), and the result counts all of them."""
+    done = len({t.episode for t in flown})
+    with Progress(episodes - done, desc, enabled=progress) as bar:
         def count(traces: list[Trace]) -> None:
             bar.update(1, success=f"{np.mean([t.outcome == 'goal' for t in traces]):.0%}")
 
-        traces = rollout(env, policy, eval_seeds(seed, episodes), on_episode=count, videos=videos)
+        traces = rollout(env, policy, eval_seeds(seed, episodes)[done:], on_episode=count, videos=videos)
+    for trace in traces:  # numbered within the whole evaluation
+        trace.episode += done
+    traces = [*flown, *traces]
     return summarize(world, episodes, traces), traces
 
 

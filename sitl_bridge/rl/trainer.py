@@ -27,7 +27,7 @@ import shutil
 import sys
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,6 +55,7 @@ from sitl_bridge.rl.prioritized import Priorities
 from sitl_bridge.rl.progress import Progress
 from sitl_bridge.rl.replay import ReplayBuffer
 from sitl_bridge.rl.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
+from sitl_bridge.rl.rollout import Trace
 from sitl_bridge.rl.stats import wilson_interval
 from sitl_bridge.rl.vector_collect import VectorCollector
 
@@ -398,13 +399,12 @@ class Trainer:
         evals.jsonl, written to eval.json (the latest), logged to TensorBoard."""
         episodes = self.config.eval_episodes if episodes is None else episodes
         start = time.perf_counter()
-        result = self._greedy(episodes)
+        result, traces = self._greedy(episodes)
         confirm = self.config.stop_confirm_episodes
         if confirm and self.config.stop_on_success and result.success_rate >= self.config.stop_on_success:
             # 20 episodes at 95 % is one failure from 90 %: a stop (and the best checkpoint)
-            # rests on the longer evaluation. Greedy flights are deterministic, so flying the
-            # first `episodes` seeds again gives the same outcomes as above.
-            result = self._greedy(episodes + confirm)
+            # rests on the longer evaluation, which goes on from the episodes just flown.
+            result, _ = self._greedy(episodes + confirm, flown=traces)
         record = {**result.to_dict(), "after_episodes": self.episode, "global_step": self.global_step,
                   "wall_time_s": time.perf_counter() - start}
         atomic_write_json(self.run_dir / rd.EVAL_FILE, record)
@@ -415,11 +415,10 @@ class Trainer:
         self.last_eval = result
         return result
 
-    def _greedy(self, episodes: int) -> EvalResult:
-        result, _ = evaluate_on(self.env, lambda obs: int(np.argmax(self.agent.q_values(obs))),
-                                world=self.spec.world, episodes=episodes, seed=self.spec.seed,
-                                progress=self.progress, desc="greedy evaluation")
-        return result
+    def _greedy(self, episodes: int, flown: Sequence[Trace] = ()) -> tuple[EvalResult, list[Trace]]:
+        return evaluate_on(self.env, lambda obs: int(np.argmax(self.agent.q_values(obs))),
+                           world=self.spec.world, episodes=episodes, seed=self.spec.seed,
+                           progress=self.progress, desc="greedy evaluation", flown=flown)
 
     def _keep_if_best(self, result: EvalResult) -> None:
         """Copy the checkpoint just evaluated to `best.safetensors` when its greedy success beats
