@@ -106,6 +106,28 @@ def test_verify_rules_flies_covered_and_simpler_scenarios() -> None:
     assert report["obstacle"]["collision_rate"] == 1.0 and not report["obstacle"]["covered"]
 
 
+def test_a_traffic_rule_is_left_out_where_there_is_no_other_drone(tmp_path: Path) -> None:
+    # the thesis's loop flies a traffic rule set in the one-drone scenarios before it: its rules
+    # about the other drone do not apply there (the feature is not observed), the rest fly
+    path = write_rules(tmp_path, f"""
+frame: goal
+covers: [{WORLDS / "two_drones_empty_relative.yaml"}]
+rules:
+  - text: no right of way, yield
+    when: [{{feature: own_priority, op: "<", value: 0.5}}]
+    action: hover
+  - {{text: otherwise fly toward the goal, action: toward goal}}
+""")
+    with pytest.raises(ConfigError, match="own_priority"):
+        rule_policy(path, EMPTY)
+    policy = rule_policy(path, EMPTY, leave_out_absent=True)
+    assert policy.left_out == (0,) and policy(np.zeros(51)) == 6
+    report = verify_rules(path, [EMPTY], episodes=1, seed=0)
+    assert report["empty"]["rules_left_out"] == ["no right of way, yield"]
+    assert report["empty"]["success"] == 1.0
+    assert report["two_drones_empty_relative"]["rules_left_out"] == []
+
+
 # -- the logic: layout, features, ops, first match -------------------------------------------------
 
 def test_observation_layout_follows_the_feature_list() -> None:

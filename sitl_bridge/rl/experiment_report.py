@@ -422,7 +422,10 @@ def _rules_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
             if "skipped" in v:
                 lines.append(f"| `{where}` | {'yes' if v['covered'] else 'no'} | not flown: {_cell(v['skipped'])} | | | |")
                 continue
-            lines.append(f"| `{where}` | {'yes' if v['covered'] else 'no'} | {_pct(v['success'])} "
+            left_out = v.get("rules_left_out") or []  # rules on features this scenario lacks
+            scenario = f"`{where}`" + (f" (left out, not observed there: {_cell('; '.join(left_out))})"
+                                       if left_out else "")
+            lines.append(f"| {scenario} | {'yes' if v['covered'] else 'no'} | {_pct(v['success'])} "
                          f"| {_pct(v['collision_rate'])} | {_pct(v.get('network_success'))} "
                          f"| {_pct(v.get('network_collision'))} |")
         lines.append("")

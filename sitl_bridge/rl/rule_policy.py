@@ -191,6 +191,8 @@ class RulePolicy:
     columns: tuple[tuple[int, ...], ...]
     """Per rule, the observation column each of its conditions reads."""
     obs_dim: int
+    left_out: tuple[int, ...] = ()
+    """Rules that never hold here: they test a feature this scenario does not observe (see `bind`)."""
     fired: list[int] = field(default_factory=list)
     """How often each rule decided (last entry: no rule held, hovered), since creation."""
 
@@ -200,7 +202,8 @@ class RulePolicy:
     def choose(self, obs: np.ndarray) -> int:
         """Index of the first rule whose conditions all hold (len(rules) when none does)."""
         for i, (rule, columns) in enumerate(zip(self.rules.rules, self.columns, strict=True)):
-            if all(c.holds(obs[col]) for c, col in zip(rule.conditions, columns, strict=True)):
+            if i not in self.left_out and all(c.holds(obs[col]) for c, col in zip(rule.conditions, columns,
+                                                                                  strict=True)):
                 return i
         return len(self.rules.rules)
 
@@ -238,9 +241,13 @@ def _column(condition: Condition, layout: dict[str, slice], scenario: Scenario, 
     return block.start + condition.index
 
 
-def bind(rules: RuleSet, scenario: Scenario) -> RulePolicy:
+def bind(rules: RuleSet, scenario: Scenario, *, leave_out_absent: bool = False) -> RulePolicy:
     """The rule set as a policy for `scenario`; a feature it lacks, an index out of range or a
-    frame mismatch (for a rule with a frame-dependent action) is a one-line ConfigError."""
+    frame mismatch (for a rule with a frame-dependent action) is a one-line ConfigError.
+
+    With `leave_out_absent`, a rule testing a feature that `scenario` does not observe at all
+    (another drone's position in a one-drone scenario) is left out there instead (it never holds:
+    `RulePolicy.left_out`), so a traffic rule set can be flown in the simpler scenarios before it."""
     frame = scenario.task.action.frame
     if frame != rules.frame:
         for rule in rules.rules:
@@ -250,15 +257,18 @@ def bind(rules: RuleSet, scenario: Scenario) -> RulePolicy:
                     f"{rule.path}.action {action_name(rule.action, rules.frame)!r} depends on it), "
                     f"got {rules.frame!r}")
     layout = observation_layout(scenario)
-    columns = tuple(tuple(_column(c, layout, scenario, rules.source) for c in rule.conditions)
-                    for rule in rules.rules)
-    return RulePolicy(rules, columns, scenario.task.observation_size)
+    left_out = tuple(i for i, rule in enumerate(rules.rules)
+                     if leave_out_absent and any(c.name not in layout for c in rule.conditions))
+    columns = tuple((0,) * len(rule.conditions) if i in left_out else
+                    tuple(_column(c, layout, scenario, rules.source) for c in rule.conditions)
+                    for i, rule in enumerate(rules.rules))
+    return RulePolicy(rules, columns, scenario.task.observation_size, left_out)
 
 
-def rule_policy(rules: str | Path | RuleSet, world: str | Path) -> RulePolicy:
-    """Load (if a path) and bind a rule set to the scenario file `world`."""
+def rule_policy(rules: str | Path | RuleSet, world: str | Path, *, leave_out_absent: bool = False) -> RulePolicy:
+    """Load (if a path) and bind a rule set to the scenario file `world` (see `bind`)."""
     rule_set = rules if isinstance(rules, RuleSet) else load_rules(rules)
-    return bind(rule_set, load_scenario(world))
+    return bind(rule_set, load_scenario(world), leave_out_absent=leave_out_absent)
 
 
 def covered_scenarios(rules: RuleSet) -> list[Path]:
@@ -305,8 +315,10 @@ def verify_rules(rules_path: str | Path, scenarios: Iterable[str | Path] = (), e
                  seed: int = 0, *, autopilot: str = "direct", progress: bool = False) -> dict[str, dict[str, Any]]:
     """Fly a rule set in every scenario it `covers` and in `scenarios` (the simpler ones before
     them): per scenario (keyed by file stem) the evaluation's keys plus `success`,
-    `collision_rate`, `covered` and `rules_fired`. A covered scenario the rules cannot be flown in
-    is an error; an extra one is reported as `{"skipped": reason}`."""
+    `collision_rate`, `covered`, `rules_fired` and `rules_left_out` (the texts of the rules that
+    test a feature an extra scenario does not observe: left out there, see `bind`). A covered
+    scenario the rules cannot be flown in is an error; an extra one is reported as
+    `{"skipped": reason}`."""
     rules = load_rules(rules_path)
     plan: dict[Path, bool] = {path.resolve(): True for path in covered_scenarios(rules)}
     for scenario in scenarios:
@@ -315,7 +327,7 @@ def verify_rules(rules_path: str | Path, scenarios: Iterable[str | Path] = (), e
     for path, covered in plan.items():
         key = path.stem if path.stem not in out else str(path)
         try:
-            policy = rule_policy(rules, path)
+            policy = rule_policy(rules, path, leave_out_absent=not covered)
         except ConfigError as exc:
             if covered:
                 raise
@@ -325,5 +337,6 @@ def verify_rules(rules_path: str | Path, scenarios: Iterable[str | Path] = (), e
                                       progress=progress)
         out[key] = {"scenario": str(path), "covered": covered, **result.to_dict(),
                     "success": result.success_rate, "collision_rate": result.crash_rate,
-                    "rules_fired": policy.fired_share()}
+                    "rules_fired": policy.fired_share(),
+                    "rules_left_out": [rules.rules[i].text for i in policy.left_out]}
     return out

@@ -50,7 +50,7 @@ SIMPLER_THAN: dict[str, tuple[str, ...]] = {
 }
 """The thesis's incremental order by scenario file stem: the scenarios each one came after."""
 VERIFICATION_KEYS = ("covered", "success", "collision_rate", "out_rate", "timeout_rate", "episodes",
-                     "drone_episodes", "rules_fired")
+                     "drone_episodes", "rules_fired", "rules_left_out")
 
 
 def scenario_stems(results: dict[str, Any]) -> list[str]:
