@@ -26,10 +26,11 @@ import yaml
 from sitl_bridge.rl.actions_named import action_code, action_name
 from sitl_bridge.rl.behaviour import BehaviourAnalysis, EpisodeBehaviour, split_text
 
-ANALYSIS_VERSION = 2
-"""Bumped when the classification or the rule extraction changes what they report, so the
-report's cached behaviour and rules are made again (2: passing order, rule 5 by it, the end of
-a climb or dive under another drone)."""
+ANALYSIS_VERSION = 3
+"""Bumped when the classification, the rule extraction or the rules' verification changes what
+they report, so the report's cached behaviour and rules are made again (2: passing order, rule 5
+by it, the end of a climb or dive under another drone; 3: traffic rule sets flown in the
+one-drone scenarios before them, their rules on the other drone left out)."""
 SEED_SUPPORT_SHARE = 0.5
 """A manoeuvre holds in a seed when it shows in at least this share of its successful episodes."""
 YAML_MIN_SEED_SHARE = 0.5
