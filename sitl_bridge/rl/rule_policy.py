@@ -188,22 +188,26 @@ class RulePolicy:
     """A rule set bound to one scenario's observation layout: call it with one observation."""
 
     rules: RuleSet
-    columns: tuple[tuple[int, ...], ...]
-    """Per rule, the observation column each of its conditions reads."""
+    columns: tuple[tuple[int, ...] | None, ...]
+    """Per rule, the observation column each of its conditions reads; None for a rule left out
+    here (it tests a feature this scenario does not observe, see `bind`): it never holds."""
     obs_dim: int
-    left_out: tuple[int, ...] = ()
-    """Rules that never hold here: they test a feature this scenario does not observe (see `bind`)."""
     fired: list[int] = field(default_factory=list)
     """How often each rule decided (last entry: no rule held, hovered), since creation."""
 
     def __post_init__(self) -> None:
         self.fired = [0] * (len(self.rules.rules) + 1)
 
+    @property
+    def left_out(self) -> tuple[int, ...]:
+        """Indices of the rules left out here (see `columns`)."""
+        return tuple(i for i, columns in enumerate(self.columns) if columns is None)
+
     def choose(self, obs: np.ndarray) -> int:
         """Index of the first rule whose conditions all hold (len(rules) when none does)."""
         for i, (rule, columns) in enumerate(zip(self.rules.rules, self.columns, strict=True)):
-            if i not in self.left_out and all(c.holds(obs[col]) for c, col in zip(rule.conditions, columns,
-                                                                                  strict=True)):
+            if columns is not None and all(c.holds(obs[col]) for c, col in zip(rule.conditions, columns,
+                                                                               strict=True)):
                 return i
         return len(self.rules.rules)
 
@@ -257,12 +261,10 @@ def bind(rules: RuleSet, scenario: Scenario, *, leave_out_absent: bool = False) 
                     f"{rule.path}.action {action_name(rule.action, rules.frame)!r} depends on it), "
                     f"got {rules.frame!r}")
     layout = observation_layout(scenario)
-    left_out = tuple(i for i, rule in enumerate(rules.rules)
-                     if leave_out_absent and any(c.name not in layout for c in rule.conditions))
-    columns = tuple((0,) * len(rule.conditions) if i in left_out else
+    columns = tuple(None if leave_out_absent and any(c.name not in layout for c in rule.conditions) else
                     tuple(_column(c, layout, scenario, rules.source) for c in rule.conditions)
-                    for i, rule in enumerate(rules.rules))
-    return RulePolicy(rules, columns, scenario.task.observation_size, left_out)
+                    for rule in rules.rules)
+    return RulePolicy(rules, columns, scenario.task.observation_size)
 
 
 def rule_policy(rules: str | Path | RuleSet, world: str | Path, *, leave_out_absent: bool = False) -> RulePolicy:
