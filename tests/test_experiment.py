@@ -76,8 +76,8 @@ def test_runs_that_never_reach_90_count_as_their_budget() -> None:
 
 
 def test_learning_time_from_the_logs(tmp_path) -> None:
-    """Episodes and wall time to the first evaluation at >= 90 %; an evaluation repeated after a
-    resume counts once (the last), each episode's wall time once (two drones log it twice)."""
+    """Episodes, wall and CPU time to the first evaluation at >= 90 %; an evaluation repeated after
+    a resume counts once (the last), each episode's time once (two drones log it twice)."""
     evals = [(5, 0.5, 1.0), (10, 0.95, 2.0), (10, 0.85, 3.0), (15, 0.9, 4.0), (20, 1.0, 5.0)]
     (tmp_path / "evals.jsonl").write_text("".join(
         json.dumps({"after_episodes": n, "success_rate": s, "wall_time_s": w}) + "\n" for n, s, w in evals)
@@ -89,6 +89,17 @@ def test_learning_time_from_the_logs(tmp_path) -> None:
     assert times["wall_s"] == pytest.approx(15 * 0.5 + 1.0 + 3.0 + 4.0)
     assert times["wall_total_s"] == pytest.approx(20 * 0.5 + 1.0 + 3.0 + 4.0 + 5.0)
     assert times["episodes"] == 20 and times["last_eval_success"] == 1.0
+    assert times["cpu_s"] is None and times["cpu_total_s"] is None  # logged before CPU time was recorded
+    # CPU time as wall time; one episode logged without it leaves the totals that include it unknown
+    (tmp_path / "evals.jsonl").write_text("".join(
+        json.dumps({"after_episodes": n, "success_rate": s, "wall_time_s": w, "cpu_time_s": w / 2}) + "\n"
+        for n, s, w in evals))
+    (tmp_path / "episodes.jsonl").write_text("".join(
+        json.dumps({"episode": e, "drone": d, "wall_time_s": 0.5, **({"cpu_time_s": 0.25} if e < 19 else {})})
+        + "\n" for e in range(20) for d in (0, 1)))
+    times = learning_time(tmp_path)
+    assert times["cpu_s"] == pytest.approx((15 * 0.5 + 1.0 + 3.0 + 4.0) / 2)
+    assert times["cpu_total_s"] is None and times["wall_total_s"] == pytest.approx(20 * 0.5 + 13.0)
     (tmp_path / "evals.jsonl").write_text(json.dumps({"after_episodes": 5, "success_rate": 0.2}) + "\n")
     assert learning_time(tmp_path)["episodes_to_90"] is None and learning_time(tmp_path)["wall_s"] is None
 

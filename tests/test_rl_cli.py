@@ -59,6 +59,9 @@ def test_train_writes_a_complete_run_dir(empty_run: Path) -> None:
     assert len(first["actions"]) == first["steps"] > 0
     assert first["sim_time_s"] == pytest.approx(first["steps"] * 1.0, abs=0.5)
     assert first["reward"] == pytest.approx(sum(first["reward_terms"].values()), abs=1e-6)
+    # the CPU each episode and evaluation cost, for "minutes on one core" on a shared machine
+    assert all(r["cpu_time_s"] > 0 for r in records)
+    assert json.loads((empty_run / "eval.json").read_text())["cpu_time_s"] > 0
 
 
 def test_resume_extends_a_finished_run(empty_run: Path, tmp_path: Path) -> None:

@@ -46,6 +46,10 @@ class EpisodeRecord:
     """Environment steps taken by the run when the episode ended."""
     env_seed: int = 0
     """Seed the episode's reset used (re-runs the same start and goal)."""
+    cpu_time_s: float | None = None
+    """CPU seconds the training process spent on the episode (all its threads; what one core
+    would need, however busy the machine was; in a wave of several episodes at once, an even
+    share of the wave's). None in logs written before it was recorded."""
     extra: dict = field(default_factory=dict)
     """Anything else the environment reported at the end (positions, ...)."""
 

@@ -38,13 +38,13 @@ class EpisodeTally:
             self.final_info[drone] = info
 
     def records(self, *, episode: int, wall_time_s: float, epsilon: float, mean_loss: float | None,
-                global_step: int, env_seed: int) -> list[EpisodeRecord]:
+                global_step: int, env_seed: int, cpu_time_s: float | None = None) -> list[EpisodeRecord]:
         """One record per drone (a drone still flying is a timeout)."""
         return [EpisodeRecord(
             episode=episode, drone=i, actions=self.actions[i], reward=self.rewards[i],
             reward_terms=self.terms[i], outcome=self.outcome.get(i, "timeout"), steps=len(self.actions[i]),
             sim_time_s=max(self.sim_time - self.sim_start, 0.0), wall_time_s=wall_time_s, epsilon=epsilon,
-            mean_loss=mean_loss, global_step=global_step, env_seed=env_seed,
+            mean_loss=mean_loss, global_step=global_step, env_seed=env_seed, cpu_time_s=cpu_time_s,
             extra=_jsonable_extra(self.final_info.get(i, {})),
         ) for i in self.drones]
 

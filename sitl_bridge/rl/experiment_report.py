@@ -494,11 +494,13 @@ def _per_seed(results: dict[str, Any]) -> list[str]:
         if not group["seeds"]:
             continue
         lines += [f"<details><summary>{title}</summary>", "",
-                  "| seed | greedy success | collision rate | episodes to 90 % | wall time to 90 % | episodes trained "
-                  "| budget | best checkpoint after | run |", "|---|---|---|---|---|---|---|---|---|"]
+                  "| seed | greedy success | collision rate | episodes to 90 % | wall time to 90 % | CPU time to 90 % "
+                  "| episodes trained | budget | run CPU time | best checkpoint after | run |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for s in group["seeds"]:
             lines.append(f"| {s['seed']} | {_pct(s['greedy_success'])} | {_pct(s['collision_rate'])} "
-                         f"| {_num(s['episodes_to_90'])} | {_duration(s['wall_s'])} | {s['episodes']} | {s['budget']} "
+                         f"| {_num(s['episodes_to_90'])} | {_duration(s['wall_s'])} | {_duration(s.get('cpu_s'))} "
+                         f"| {s['episodes']} | {s['budget']} | {_duration(s.get('cpu_total_s'))} "
                          f"| {s['checkpoint_episode']} | `{s['run_dir']}` |")
         if group.get("unfinished"):
             lines.append(f"\nNot finished: seeds {', '.join(map(str, group['unfinished']))}.")
@@ -523,6 +525,10 @@ def _definitions(meta: dict[str, Any]) -> list[str]:
         "after solving shows here.",
         "- **Wall time to 90 %**: wall-clock seconds of training and its greedy evaluations until then, "
         f"with {_parallel(meta)} (they share the CPU). Median over the seeds that reached it.",
+        "- **CPU time** (per seed): CPU seconds of the training process (simulation, learning and greedy "
+        "evaluations; torch on one thread by default) until 90 % and for the whole run: the wall time the "
+        "run needs on one core of its own, however busy this machine was; '-' for runs logged before it "
+        "was recorded.",
         "- **Comparison test**: Mann-Whitney U (two-sided, scipy) on episodes to 90 %, runs that never "
         "reached it counted as their episode budget.",
         *_report_flights(meta),

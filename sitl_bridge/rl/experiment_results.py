@@ -141,24 +141,29 @@ def _jsonl(path: Path) -> list[dict]:
 
 
 def learning_time(run_dir: str | Path, threshold: float = THRESHOLD) -> dict[str, Any]:
-    """From a run's logs: episodes trained and wall time when its periodic greedy evaluation
-    first reached `threshold` (None if never), the total wall time and episodes trained, and the
-    success of its last periodic evaluation (where training ended: held, or collapsed).
+    """From a run's logs: episodes trained, wall and CPU time when its periodic greedy evaluation
+    first reached `threshold` (None if never), the total wall and CPU time and episodes trained,
+    and the success of its last periodic evaluation (where training ended: held, or collapsed).
+    CPU time is None where a log before then lacks it (runs logged before it was recorded).
     Evaluations repeated after a resume (same episode count) count once, the last one."""
     run_dir = Path(run_dir)
     evals = {int(e["after_episodes"]): e for e in _jsonl(run_dir / EVALS_FILE) if "after_episodes" in e}
-    episode_wall: dict[int, float] = {}
+    episodes: dict[int, dict] = {}  # a multi-drone episode has one record per drone: the first counts
     for record in _jsonl(run_dir / EPISODES_FILE):
-        episode_wall.setdefault(int(record["episode"]), float(record.get("wall_time_s", 0.0)))
+        episodes.setdefault(int(record["episode"]), record)
     reached = next((n for n in sorted(evals) if evals[n]["success_rate"] >= threshold), None)
 
-    def wall_until(episodes: float) -> float:
-        return (math.fsum(w for e, w in episode_wall.items() if e < episodes)
-                + math.fsum(float(e.get("wall_time_s", 0.0)) for n, e in evals.items() if n <= episodes))
+    def time_until(until: float, cpu: bool) -> float | None:
+        key, missing = ("cpu_time_s", None) if cpu else ("wall_time_s", 0.0)
+        spent = [r.get(key, missing) for n, r in episodes.items() if n < until]
+        spent += [e.get(key, missing) for n, e in evals.items() if n <= until]
+        return None if None in spent else math.fsum(map(float, spent))
 
     last = evals[max(evals)]["success_rate"] if evals else None
-    return {"episodes_to_90": reached, "wall_s": None if reached is None else wall_until(reached),
-            "wall_total_s": wall_until(math.inf), "episodes": len(episode_wall), "last_eval_success": last}
+    return {"episodes_to_90": reached, "wall_s": None if reached is None else time_until(reached, False),
+            "wall_total_s": time_until(math.inf, False),
+            "cpu_s": None if reached is None else time_until(reached, True), "cpu_total_s": time_until(math.inf, True),
+            "episodes": len(episodes), "last_eval_success": last}
 
 
 def seed_record(job_dir: Path, seed: int, evaluation: dict[str, Any], out: Path) -> dict[str, Any]:
@@ -177,6 +182,8 @@ def seed_record(job_dir: Path, seed: int, evaluation: dict[str, Any], out: Path)
         "episodes_to_90": times["episodes_to_90"],
         "wall_s": times["wall_s"],
         "wall_total_s": times["wall_total_s"],
+        "cpu_s": times["cpu_s"],
+        "cpu_total_s": times["cpu_total_s"],
         "episodes": times["episodes"],
         "last_eval_success": times["last_eval_success"],
         "budget": config.episodes,

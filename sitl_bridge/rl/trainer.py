@@ -398,7 +398,7 @@ class Trainer:
         """Greedy evaluation of the current network in the training scenario: appended to
         evals.jsonl, written to eval.json (the latest), logged to TensorBoard."""
         episodes = self.config.eval_episodes if episodes is None else episodes
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         result, traces = self._greedy(episodes)
         confirm = self.config.stop_confirm_episodes
         if confirm and self.config.stop_on_success and result.success_rate >= self.config.stop_on_success:
@@ -406,7 +406,7 @@ class Trainer:
             # rests on the longer evaluation, which goes on from the episodes just flown.
             result, _ = self._greedy(episodes + confirm, flown=traces)
         record = {**result.to_dict(), "after_episodes": self.episode, "global_step": self.global_step,
-                  "wall_time_s": time.perf_counter() - start}
+                  "wall_time_s": time.perf_counter() - start, "cpu_time_s": time.process_time() - cpu_start}
         atomic_write_json(self.run_dir / rd.EVAL_FILE, record)
         append_durably(self.run_dir / rd.EVALS_FILE, (json.dumps(record) + "\n").encode())
         self._keep_if_best(result)
@@ -455,7 +455,7 @@ class Trainer:
         config, agent = self.config, self.agent
         agent.set_learning_rate(learning_rate_at(self.episode, config.episodes,
                                                  config.learning_rate, config.learning_rate_end))
-        wall_start = time.perf_counter()
+        wall_start, cpu_start = time.perf_counter(), time.process_time()
         env_seed = episode_seed(self.spec.seed, self.episode)
         epsilon_start = self.epsilon()
         obs, reset_infos = self.env.reset(env_seed)
@@ -485,7 +485,8 @@ class Trainer:
 
         records = tally.records(episode=self.episode - 1, wall_time_s=time.perf_counter() - wall_start,
                                 epsilon=epsilon_start, mean_loss=float(np.mean(losses)) if losses else None,
-                                global_step=self.global_step, env_seed=env_seed)
+                                global_step=self.global_step, env_seed=env_seed,
+                                cpu_time_s=time.process_time() - cpu_start)
         self.persist(records, new_rows)
         return records
 

@@ -85,7 +85,7 @@ class VectorCollector:
         count = max(1, min(len(self.copies), config.episodes - first))
         agent.set_learning_rate(learning_rate_at(first, config.episodes, config.learning_rate,
                                                  config.learning_rate_end))
-        wall_start = time.perf_counter()
+        wall_start, cpu_start = time.perf_counter(), time.process_time()
         epsilon_start = trainer.epsilon()
         flights = []
         for k, copy in enumerate(self.copies[:count]):
@@ -110,12 +110,14 @@ class VectorCollector:
             agent.align_target()
 
         records = []
+        cpu_share = (time.process_time() - cpu_start) / count  # the wave's CPU, summed over its episodes
         for f in flights:
             assert f.end is not None
             global_step, n_losses, wall = f.end
             records += f.tally.records(
                 episode=f.episode, wall_time_s=wall, epsilon=epsilon_start, global_step=global_step,
-                mean_loss=float(np.mean(losses[:n_losses])) if n_losses else None, env_seed=f.env_seed)
+                mean_loss=float(np.mean(losses[:n_losses])) if n_losses else None, env_seed=f.env_seed,
+                cpu_time_s=cpu_share)
         trainer.persist(records, new_rows)
         return records
 
