@@ -41,6 +41,7 @@ from sitl_bridge.rl.atomic import append_durably, atomic_write_bytes, atomic_wri
 from sitl_bridge.rl.config import TrainConfig
 from sitl_bridge.rl.dqn import DQNAgent, NetworkShape, epsilon_at, learning_rate_at
 from sitl_bridge.rl.drones_env import DronesEnv, EnvFactory, StepResult
+from sitl_bridge.rl.early_end import EarlyEndWatch
 from sitl_bridge.rl.episode_log import EpisodeLog, EpisodeRecord, read_records
 from sitl_bridge.rl.episode_tally import EpisodeTally
 from sitl_bridge.rl.evaluate import (
@@ -140,6 +141,7 @@ class Trainer:
         self.updates = 0
         self.epsilon_max = config.epsilon_max
         self.recent_success: deque[bool] = deque(maxlen=config.success_window)
+        self.early_end = EarlyEndWatch.of(getattr(self.env.env, "scenario", None), config.gamma)
         self._kept: list[tuple[Path, int]] = []  # (checkpoint, replay rows it needs)
         self._writer: TensorBoardLog | None = None
         self.stopped_early = False
@@ -519,6 +521,8 @@ class Trainer:
         """Count finished episodes' successes, then persist their replay rows and then their
         records (the checkpoint naming both lengths comes after)."""
         self.recent_success.extend(r.success for r in records)
+        if self.early_end is not None and (warning := self.early_end.add(records)):
+            self.warn(warning)
         if new_rows:
             self.store.append(np.concatenate(new_rows))
         self.episode_log.append(records)
