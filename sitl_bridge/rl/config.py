@@ -56,6 +56,11 @@ class TrainConfig:
     """Exploration rate the schedule decays to."""
     epsilon_decay: float = 5e-5
     """lambda of the exponential epsilon schedule, per environment step (thesis: 3e-5..6e-5)."""
+    explore_repeat_max: int = 1
+    """Temporally extended exploration (ez-greedy, `rl/exploration.py`): an exploring step
+    repeats its random action for 1..this many steps (zeta-distributed); 1 = plain epsilon-greedy."""
+    explore_repeat_exponent: float = 2.0
+    """ez-greedy: P(run of n steps) proportional to n^-this (larger: shorter runs)."""
     transfer_epsilon_max: float = 0.6
     """epsilon_max used instead when the run starts from another run's network (thesis: 0.45-0.8)."""
     transfer_replay: bool = False
@@ -148,6 +153,10 @@ class TrainConfig:
             ("epsilon_max", 0.0 <= self.epsilon_max <= 1.0, "a number in [0, 1]"),
             ("epsilon_min", 0.0 <= self.epsilon_min <= self.epsilon_max, "a number in [0, epsilon_max]"),
             ("epsilon_decay", self.epsilon_decay >= 0.0, "a non-negative number"),
+            ("explore_repeat_max", 1 <= self.explore_repeat_max <= 1000 and (self.explore_repeat_max == 1
+                                                                          or self.num_envs == 1),
+             "an integer in [1, 1000] (above 1 only with num_envs 1)"),
+            ("explore_repeat_exponent", 0.0 < self.explore_repeat_exponent <= 10.0, "a number in (0, 10]"),
             ("transfer_epsilon_max", 0.0 <= self.transfer_epsilon_max <= 1.0, "a number in [0, 1]"),
             ("learning_rate", 0.0 < self.learning_rate <= 10.0, "a positive number (at most 10)"),
             ("learning_rate_end", 0.0 <= self.learning_rate_end <= 10.0, "a non-negative number (at most 10)"),

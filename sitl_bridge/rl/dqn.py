@@ -4,7 +4,8 @@
   (`train:` options, all off by default) with observation normalisation in front
   (`rl/normalizer.py`) and a dueling head: Q(s, a) = V(s) + A(s, a) - mean_a' A(s, a').
 - Exploration: epsilon-greedy with eps = eps_min + (eps_max - eps_min) * exp(-lambda * steps)
-  (thesis equation 16).
+  (thesis equation 16); with `explore_repeat_max` > 1 a random step starts a run of repeats
+  (ez-greedy, `rl/exploration.py`).
 - Target: y = r + gamma * (1 - terminated) * Q_target(s', a*), with
   a* = argmax_a Q_online(s', a) for double DQN (or argmax_a Q_target(s', a) for plain DQN).
   Truncated episodes (step limit) still bootstrap: only a real end (goal, crash, out) stops it.

@@ -50,6 +50,7 @@ from sitl_bridge.rl.evaluate import (
     constant_action_baseline,
     evaluate_on,
 )
+from sitl_bridge.rl.exploration import RepeatedExploration
 from sitl_bridge.rl.metrics import TensorBoardLog
 from sitl_bridge.rl.nstep import NStepFolder, Step
 from sitl_bridge.rl.prioritized import Priorities
@@ -129,6 +130,9 @@ class Trainer:
         shape = NetworkShape(self.env.obs_dim, self.env.n_actions, config.layers, config.hidden_units,
                              dueling=config.dueling, normalize=config.normalize_observations)
         self.agent = DQNAgent(shape, config, self.device)
+        self.explorer = (RepeatedExploration(lambda obs: int(np.argmax(self.agent.q_values(obs))), shape.n_actions,
+                                             config.explore_repeat_max, config.explore_repeat_exponent)
+                         if config.explore_repeat_max > 1 else None)
         priorities = (Priorities(config.replay_capacity, config.per_alpha, config.per_epsilon)
                       if config.prioritized_replay else None)
         self.replay = ReplayBuffer(config.replay_capacity, shape.obs_dim, priorities)
@@ -466,9 +470,13 @@ class Trainer:
         tally = EpisodeTally(self.env.num_drones, reset_infos)
         losses: list[float] = []
         new_rows: list[np.ndarray] = []
+        explorer = self.explorer
+        if explorer is not None:
+            explorer.start_episode()
         while self.env.live:
             epsilon = self.epsilon()
-            chosen = {i: agent.act(obs[i], epsilon, self.rng) for i in self.env.live}
+            chosen = {i: agent.act(obs[i], epsilon, self.rng) if explorer is None
+                      else explorer.act(i, obs[i], epsilon, self.rng) for i in self.env.live}
             result = self.env.step(chosen)
             self.global_step += 1
             for i, action in chosen.items():
