@@ -28,6 +28,7 @@ from sitl_bridge.rl.candidate_rules import (
     write_rules_yaml,
 )
 from sitl_bridge.rl.rollout import Trace
+from sitl_bridge.rl.rule_policy import evaluate_rules
 from sitl_bridge.rl.rules import summarize_behaviour
 
 WORLDS = Path(__file__).resolve().parent.parent / "worlds"
@@ -409,3 +410,42 @@ def test_who_dives_follows_a_priority_convention_that_can_differ_by_seed() -> No
     assert (dive.support_seeds, dive.support_episodes) == (3, 6)
     assert "1 other seed(s) the drone without right of way" in dive.note
     assert dive.action_name == "down" and dive.in_yaml
+
+
+def test_a_climb_to_the_window_becomes_a_rule_that_flies_the_window(tmp_path: Path) -> None:
+    """The thesis's W behaviour (5 5 5 5, then on through the window): the climb to the opening
+    is its own manoeuvre, and its rule tests the ray that tells the climbing steps from the others
+    (the forward ray sees the wall until the drone is level with the window), not the side wall
+    that reads shorter at every step. Flown, the rules pass the window."""
+    scenario_file = WORLDS / "window.yaml"
+    scenario = load_scenario(scenario_file)
+    facts = scenario_facts(scenario, scenario_file)
+    wall_openings = openings(scenario.world.obstacles)  # the north wall's: y = 4, 4.5-5.7 m up
+    path = [[0, 0, 1], [0, 0, 2], [0, 0, 3], [0, 0, 4], [0, 0, 5], [0, 1, 5], [0, 2, 5], [0, 3, 5], [0, 4, 5],
+            [0, 5, 5], [0, 6, 5]]
+    lidar = facts.layout["lidar"]
+    climb = Trace(episode=0, drone=0, seed=100, actions=[5] * 4 + [6] * 6, outcome="goal",
+                  positions_enu_m=path, goal_enu_m=[0, 6, 5])
+    runs, obs = [], {}
+    for seed in range(2):
+        runs.append(RunBehaviour(str(seed), classify([climb], run=str(seed), shared_openings=wall_openings)))
+        rows = np.full((10, lidar.stop), facts.lidar_range_m)
+        rows[:, lidar.start] = 3.5  # a side wall, as near at every step
+        rows[:4, lidar.start + 17] = 3.9  # the north wall ahead while below the window
+        obs[(str(seed), 0, 0)] = rows
+    (drone,) = runs[0].episodes[0].drones
+    assert drone.manoeuvre == "to_opening" and (drone.trigger_step, drone.action) == (0, 5)
+    (plain,) = one(climb)
+    assert plain.manoeuvre == "direct"  # without the world's openings nothing names the climb
+    slanting = [[0, 0.8 * k, 1 + 0.6 * k] for k in range(8)]  # toward a goal higher up: direct flight
+    (direct,) = one(Trace(episode=0, drone=0, seed=100, actions=[6] * 7, outcome="goal",
+                          positions_enu_m=slanting, goal_enu_m=[0, 6, 5.2]), shared_openings=wall_openings)
+    assert direct.manoeuvre == "direct"
+    analysis = BehaviourAnalysis("window", runs)
+    rules = {r.manoeuvre: r for r in candidate_rules(analysis, facts, obs)}
+    rise = rules["to_opening"]
+    assert rise.when == [{"feature": "lidar[17]", "op": "<=", "value": 3.9}] and rise.action_name == "up"
+    assert rise.in_yaml and (rise.support_seeds, rise.support_episodes) == (2, 2)
+    written = write_rules_yaml(tmp_path / "window.yaml", rules_document(list(rules.values()), analysis, facts))
+    result, _, _ = evaluate_rules(written, scenario_file, episodes=2)
+    assert result.success_rate == 1.0

@@ -8,6 +8,7 @@ for every other one that also applies, and its outcome:
 | `yield_back_off` | moves back along its travel direction while another drone near it is under way |
 | `yield_hover` | hovers while another drone near it is under way (the thesis's TW "one hovers") |
 | `oscillation` | repeated back-and-forth: reversals of direction between consecutive moves |
+| `to_opening` | climbs (or sinks) toward a wall's opening before going through it (the thesis's W "5 5 5 5 3 3 3") |
 | `climb_over` | rises clearly above start and goal (the thesis's O "fly over") |
 | `dive_under` | drops clearly below start and goal (passes under another drone or an obstacle) |
 | `pass_left` / `pass_right` | leaves the straight start-goal line to the left / right of its own travel direction |
@@ -64,7 +65,7 @@ is a split."""
 HEAD_ON_COS = -0.9
 """Two drones whose horizontal travel directions are this close to opposite fly head-on."""
 
-PRECEDENCE = ("yield_back_off", "yield_hover", "oscillation", "climb_over", "dive_under", "pass_left",
+PRECEDENCE = ("yield_back_off", "yield_hover", "oscillation", "to_opening", "climb_over", "dive_under", "pass_left",
               "pass_right", "hover", "direct")
 """Manoeuvre names, most specific first: the first that applies names a drone-episode."""
 
@@ -230,7 +231,8 @@ def _yield(i: int, paths: list[np.ndarray], goals: list[np.ndarray], moves: np.n
 def classify_episode(traces: list[Trace], *, run: str = "", priority_rule: str = "lower_coordinate_yields",
                      shared_openings: tuple[Opening, ...] = ()) -> EpisodeBehaviour:
     """Classify every drone of one episode (`traces`: that episode's traces, one per drone);
-    `shared_openings` (`openings(world.obstacles)`) adds the order they went through them."""
+    `shared_openings` (`openings(world.obstacles)`) adds the order they went through them and
+    names the climbs to an opening's height (`to_opening`)."""
     traces = sorted(traces, key=lambda t: t.drone)
     usable = all(len(t.positions_enu_m) >= 2 and t.goal_enu_m is not None for t in traces)
     paths = [np.asarray(t.positions_enu_m, dtype=float).reshape(-1, 3) for t in traces]
@@ -242,7 +244,7 @@ def classify_episode(traces: list[Trace], *, run: str = "", priority_rule: str =
                                planner_share=trace.actions.count(6) / trace.steps if trace.steps else 0.0,
                                end_altitude_m=float(paths[i][-1, 2]) if len(paths[i]) else None)
         if usable:
-            _classify_drone(drone, i, trace, paths, goals, priority_rule)
+            _classify_drone(drone, i, trace, paths, goals, priority_rule, shared_openings)
         drones.append(drone)
     episode = EpisodeBehaviour(run=run, episode=traces[0].episode if traces else 0,
                                seed=traces[0].seed if traces else 0, drones=drones)
@@ -269,8 +271,25 @@ def _passing_order(episode: EpisodeBehaviour, paths: list[np.ndarray], goals: li
         return
 
 
+def _height_to_opening(path: np.ndarray, goal: np.ndarray, moves: np.ndarray,
+                       wall_openings: tuple[Opening, ...]) -> list[int]:
+    """Steps that climbed (or sank) toward the height of the opening the drone went through,
+    before it was through, more up (down) than along; empty unless they changed its height by at
+    least CLIMB_OVER_M. A slanting step toward a goal higher up is direct flight, not this."""
+    for opening in wall_openings:
+        through = _through_step(path, goal, opening)
+        if through is None:
+            continue
+        sign = 1.0 if opening.center_enu_m[2] >= path[0, 2] else -1.0
+        steps = [t for t in range(through)
+                 if sign * moves[t][2] >= max(MOVE_M, float(np.linalg.norm(moves[t][:2])))]
+        if sum(sign * moves[t][2] for t in steps) >= CLIMB_OVER_M:
+            return steps
+    return []
+
+
 def _classify_drone(drone: DroneBehaviour, i: int, trace: Trace, paths: list[np.ndarray],
-                    goals: list[np.ndarray], priority_rule: str) -> None:
+                    goals: list[np.ndarray], priority_rule: str, wall_openings: tuple[Opening, ...] = ()) -> None:
     path = paths[i]
     moves = _steps(path, travel_frame(path[0], goals[i]))
     geometry = path_geometry(trace)
@@ -287,6 +306,9 @@ def _classify_drone(drone: DroneBehaviour, i: int, trace: Trace, paths: list[np.
         found[kind] = (yield_steps[0], yield_steps)
     if drone.reversals >= OSCILLATION_REVERSALS:
         found["oscillation"] = (first_reversal, [])
+    to_opening = _height_to_opening(path, goals[i], moves, wall_openings)
+    if to_opening:
+        found["to_opening"] = (to_opening[0], to_opening)
     if drone.climb_m >= CLIMB_OVER_M:
         rising = [t for t, m in enumerate(moves) if m[2] >= MOVE_M]
         found["climb_over"] = (rising[0] if rising else None, rising)

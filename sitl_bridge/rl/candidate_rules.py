@@ -26,19 +26,20 @@ import yaml
 from sitl_bridge.rl.actions_named import action_code, action_name
 from sitl_bridge.rl.behaviour import BehaviourAnalysis, EpisodeBehaviour, split_text
 
-ANALYSIS_VERSION = 3
+ANALYSIS_VERSION = 4
 """Bumped when the classification, the rule extraction or the rules' verification changes what
 they report, so the report's cached behaviour and rules are made again (2: passing order, rule 5
 by it, the end of a climb or dive under another drone; 3: traffic rule sets flown in the
-one-drone scenarios before them, their rules on the other drone left out)."""
+one-drone scenarios before them, their rules on the other drone left out; 4: climbs to a wall's
+opening, `to_opening`, a rule of their own)."""
 SEED_SUPPORT_SHARE = 0.5
 """A manoeuvre holds in a seed when it shows in at least this share of its successful episodes."""
 YAML_MIN_SEED_SHARE = 0.5
 """A candidate enters the YAML when it holds in at least this share of the seeds (a majority
 behaviour, not one run's habit)."""
 THRESHOLD_STEP = 0.1
-"""Condition thresholds are rounded outward to this (metres): readable, and still true at every
-observed trigger."""
+"""Condition thresholds are rounded outward to this (metres): readable, and still true at the
+observed triggers."""
 LATERAL_MARGIN_M = 0.5
 """Sideways slack added to the largest sideways offset of the other drone seen at a trigger."""
 GROUND_CRASH_M = 0.5
@@ -50,17 +51,19 @@ PLANNER_SHARE = 0.5
 """Direct flights with at least this share of action 6 use the planner's path (thesis rule 1)."""
 
 RULE_MANOEUVRES = ("yield_hover", "yield_back_off", "pass_right", "pass_left", "climb_over", "dive_under",
-                   "direct")
+                   "to_opening", "direct")
 """Manoeuvres that make rules, in YAML order (most specific situation first, `direct` last)."""
 COMPETING = (("pass_right", "pass_left"), ("yield_hover", "yield_back_off"), ("climb_over", "dive_under"))
 WORDS = {"direct": "fly toward the goal", "climb_over": "climb over it", "dive_under": "descend below it",
          "pass_left": "move to its left",
          "pass_right": "move to its right", "yield_hover": "hover until it has passed",
-         "yield_back_off": "move back until it has passed"}
+         "yield_back_off": "move back until it has passed", "to_opening": "change height toward the opening"}
 TOWARD_GOAL = 6
 """The planner's action (the thesis's code 6), the rule for the straight path."""
 OTHER_DRONE = ("yield_hover", "yield_back_off")
 """Manoeuvres that are about another drone in every scenario; passes are when there are others."""
+ABOUT_WORLD = ("to_opening",)
+"""Manoeuvres that are about the world's geometry (lidar) even when there are other drones."""
 
 Observations = Mapping[tuple[str, int, int], np.ndarray]
 """(run label, episode, drone) -> that drone's observation before each of its steps (steps x size)."""
@@ -154,9 +157,9 @@ def _feature(layout: Mapping[str, slice], name: str, index: int) -> str:
 
 
 def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
-                  ) -> list[tuple[str, np.ndarray]]:
-    """(run, observations from the first step of `manoeuvre` on) of every successful drone-episode
-    that shows it and has its observations recorded."""
+                  ) -> list[tuple[str, np.ndarray, list[int]]]:
+    """(run, observations and actions from the first step of `manoeuvre` on) of every successful
+    drone-episode that shows it and has its observations recorded."""
     found = []
     for episode in analysis.episodes:
         if not episode.success:
@@ -165,7 +168,8 @@ def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Obs
             obs = observations.get((episode.run, episode.episode, d.drone))
             if d.manoeuvre == manoeuvre and d.trigger_step is not None and obs is not None \
                     and d.trigger_step < len(obs):
-                found.append((episode.run, np.asarray(obs[d.trigger_step:], dtype=float)))
+                found.append((episode.run, np.asarray(obs[d.trigger_step:], dtype=float),
+                              d.actions[d.trigger_step:]))
     return found
 
 
@@ -174,7 +178,7 @@ def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observa
     """Observations before the first step of `manoeuvre` in the successful episodes (rows), and
     the run (seed) each row comes from."""
     found = _from_trigger(analysis, manoeuvre, observations)
-    return np.array([rows[0] for _, rows in found]), [run for run, _ in found]
+    return np.array([rows[0] for _, rows, _ in found]), [run for run, _, _ in found]
 
 
 def _priority_convention(rows: np.ndarray, runs: list[str], facts: ScenarioFacts,
@@ -235,7 +239,7 @@ def _vertical_stop(analysis: BehaviourAnalysis, manoeuvre: str, observations: Ob
     ahead, up = facts.layout["travel_others"].start + 1, facts.layout["travel_others"].start + 2
     sign = 1.0 if manoeuvre == "dive_under" else -1.0  # the other above me (dive) or below (climb)
     gaps = []
-    for run, rows in _from_trigger(analysis, manoeuvre, observations):
+    for run, rows, _ in _from_trigger(analysis, manoeuvre, observations):
         rows = rows[rows[:, ahead] > 0.0]
         if run in runs and len(rows):
             gaps.append(float((sign * rows[:, up]).max()))
@@ -246,16 +250,31 @@ def _vertical_stop(analysis: BehaviourAnalysis, manoeuvre: str, observations: Ob
     return {"feature": feature, "op": "<" if sign > 0 else ">", "value": round(sign * gap, 6)}
 
 
-def _lidar_condition(rows: np.ndarray, facts: ScenarioFacts) -> tuple[list[dict], str] | None:
-    """The lidar ray that read shortest at every trigger, below the longest such reading."""
-    if "lidar" not in facts.layout:
+def _lidar_condition(after: list[tuple[str, np.ndarray, list[int]]], code: int, facts: ScenarioFacts,
+                     ) -> tuple[list[dict], str] | None:
+    """`ray <= reach` for the ray that best tells the steps from the trigger on where the network
+    flew the manoeuvre's action `code` from those where it flew another (Youden's J: share of the
+    former where it holds minus share of the latter); reach is the longest reading of that ray at
+    the triggers where it saw something. The ray that merely read shortest would often be the
+    ground below or a side wall, true whatever the network does. None when no ray tells them
+    apart (J <= 0)."""
+    if "lidar" not in facts.layout or not after:
         return None
-    block = rows[:, facts.layout["lidar"]]
-    longest = block.max(axis=0)
-    ray = int(np.argmin(longest))
-    if longest[ray] >= facts.lidar_range_m - 1e-6:
-        return None  # no ray saw something at every trigger
-    reach = _up(float(longest[ray]))
+    block = facts.layout["lidar"]
+    triggers = np.array([rows[0, block] for _, rows, _ in after])
+    seen = triggers < facts.lidar_range_m - 1e-6
+    reach = {int(r): _up(float(triggers[seen[:, r], r].max())) for r in np.flatnonzero(seen.any(axis=0))}
+    steps = np.concatenate([rows[:len(actions), block] for _, rows, actions in after])
+    flew = np.concatenate([np.asarray(actions[:len(rows)]) == code for _, rows, actions in after])
+
+    def youden(r: int) -> float:
+        holds = steps[:, r] <= reach[r]
+        return float(holds[flew].mean() - (holds[~flew].mean() if (~flew).any() else 0.0))
+
+    ray = max(reach, key=youden, default=None)  # first of equals: the lowest index
+    if ray is None or youden(ray) <= 0.0:
+        return None
+    reach = reach[ray]
     feature = _feature(facts.layout, "lidar", ray)
     return [{"feature": feature, "op": "<=", "value": reach}], f"something within {reach:g} m on {feature}"
 
@@ -281,7 +300,7 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
         rule.note = f"the network flew it mostly with action {code} {action_name(code, facts.frame)}"
         return rule
     doing = f"{WORDS[manoeuvre]} (action {code} {rule.action_name})"
-    about_drone = manoeuvre in OTHER_DRONE or facts.num_drones > 1
+    about_drone = manoeuvre in OTHER_DRONE or (facts.num_drones > 1 and manoeuvre not in ABOUT_WORLD)
     rows, runs = _triggers(analysis, manoeuvre, observations)
     convention, convention_note = None, ""
     if about_drone and manoeuvre not in OTHER_DRONE and facts.num_drones > 1:
@@ -294,7 +313,8 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
             rule.note = convention_note
     condition = None
     if len(rows):
-        condition = _drone_condition(rows, facts, manoeuvre) if about_drone else _lidar_condition(rows, facts)
+        condition = (_drone_condition(rows, facts, manoeuvre) if about_drone
+                     else _lidar_condition(_from_trigger(analysis, manoeuvre, observations), code, facts))
         if condition is not None and convention is not None:
             when, situation = condition
             when.insert(0, {"feature": _feature(facts.layout, "own_priority", 0),
@@ -315,7 +335,7 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
             rule.note = f"not expressible in this scenario's features (needs {needs})"
         else:
             rule.note = ("the other drone was not always ahead when it started" if about_drone
-                         else "no lidar ray saw something every time it started")
+                         else "no lidar ray tells where the network did it from where it did not")
         return rule
     rule.when, situation = condition
     rule.text = f"{situation}: {doing}"
