@@ -391,7 +391,9 @@ def _rules_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
         return lines + _not_run("rules", meta)
     settings = meta.get("report") or {}
     lines += ["Candidate rules from the classified episodes: the situation at the start of each manoeuvre "
-              "(a condition over the scenario's observation features), the action flown there and its support "
+              "(a condition over the scenario's observation features: for an obstacle, the lidar ray that best tells "
+              "the steps where the network flew the manoeuvre's action from the others), the action flown there "
+              "and its support "
               "(seeds in which it shows in at least half of the successful episodes; successful episodes "
               "showing it). The rules kept *in the YAML* make the scenario's rules file (first matching rule "
               "wins; without a supported unconditional rule it ends with the default: fly toward the goal); it "
