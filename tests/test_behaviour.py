@@ -445,6 +445,7 @@ def test_a_climb_to_the_window_becomes_a_rule_that_flies_the_window(tmp_path: Pa
     rules = {r.manoeuvre: r for r in candidate_rules(analysis, facts, obs)}
     rise = rules["to_opening"]
     assert rise.when == [{"feature": "lidar[17]", "op": "<=", "value": 3.9}] and rise.action_name == "up"
+    assert rise.text.startswith("something within 3.9 m ahead (lidar[17]): change height toward the opening")
     assert rise.in_yaml and (rise.support_seeds, rise.support_episodes) == (2, 2)
     written = write_rules_yaml(tmp_path / "window.yaml", rules_document(list(rules.values()), analysis, facts))
     result, _, _ = evaluate_rules(written, scenario_file, episodes=2)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sitl_bridge.physics import MotorCommand, Simulation
-from sitl_bridge.sensors.lidar import Lidar, LidarConfig, ray_directions_flu
+from sitl_bridge.sensors.lidar import Lidar, LidarConfig, ray_directions_flu, ray_labels
 from sitl_bridge.world import load_world
 
 WORLDS = Path(__file__).resolve().parents[1] / "worlds"
@@ -137,3 +137,19 @@ def test_per_vehicle_configs_in_one_batch():
         assert [len(s.horizontal_m) for s in scans] == [35, 5]
         assert scans[1].horizontal_m[2] == pytest.approx(3.0 - 0.47 / 2, abs=0.01)
         assert scans[1].down_m.tolist() == pytest.approx([3.0], abs=0.01)
+
+
+def test_ray_labels_name_each_direction_as_it_points() -> None:
+    config = LidarConfig()
+    labels = ray_labels(config)
+    horizontal, up, down = ray_directions_flu(config)
+    assert [len(labels[g]) for g in ("horizontal", "up", "down")] == [len(horizontal), len(up), len(down)]
+    assert labels["horizontal"][17] == "ahead" and labels["horizontal"][0] == "behind"
+    for label, (x, y, _) in zip(labels["horizontal"], horizontal, strict=True):
+        if label.endswith("left"):
+            assert y > 0.0   # FLU: +y is the body's left
+        elif label.endswith("right"):
+            assert y < 0.0
+    for group, rays, where in (("up", up, "above"), ("down", down, "below")):
+        for label, (x, _, _) in zip(labels[group], rays, strict=True):
+            assert label.startswith(where) and (label.endswith("ahead") == (x > 0.1))

@@ -61,6 +61,8 @@ class Feature:
     low: np.ndarray
     high: np.ndarray
     compute: Callable[[DroneView], np.ndarray]
+    labels: tuple[str, ...] = ()
+    """Each element in words, where that helps a reader (lidar: each ray's direction)."""
 
     @property
     def size(self) -> int:
@@ -228,7 +230,8 @@ def _lidar(options: Node, limits: ScenarioLimits) -> Feature:
     groups = _lidar_groups(options)
     size = sum(limits.lidar_rays[g] for g in groups)
     return Feature("lidar", np.zeros(size), np.full(size, limits.lidar_range_m),
-                   lambda v: np.concatenate([v.lidar[g] for g in groups]))
+                   lambda v: np.concatenate([v.lidar[g] for g in groups]),
+                   tuple(label for g in groups for label in limits.lidar_labels.get(g, ())))
 
 
 def _lidar_change(options: Node, limits: ScenarioLimits) -> Feature:

@@ -14,6 +14,7 @@ import numpy as np
 from sitl_bridge.envs.task import TaskConfig, parse_task
 from sitl_bridge.envs.view import ScenarioLimits
 from sitl_bridge.errors import ConfigError
+from sitl_bridge.sensors.lidar import ray_labels
 from sitl_bridge.world import World, load_world
 
 
@@ -43,6 +44,7 @@ def limits_of(world: World) -> ScenarioLimits:
         workspace_high_enu_m=np.asarray(world.workspace.max_m, dtype=float),
         lidar_rays={"horizontal": lidar.horizontal_rays, "up": lidar.up_rays, "down": lidar.down_rays},
         lidar_range_m=lidar.range_m,
+        lidar_labels=ray_labels(lidar),
     )
 
 

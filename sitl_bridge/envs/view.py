@@ -23,6 +23,8 @@ class ScenarioLimits:
         default_factory=lambda: {"horizontal": 35, "up": 6, "down": 6}
     )
     lidar_range_m: float = 5.0
+    lidar_labels: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    """Each ray's direction in words, per group (`sensors.lidar.ray_labels`)."""
     max_speed_m_s: float = 5.0
     """Velocity observations are clipped to +- this."""
 

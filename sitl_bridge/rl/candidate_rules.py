@@ -84,6 +84,8 @@ class ScenarioFacts:
     opening: bool = False
     """A wall with an opening (thesis rules 4 and 5)."""
     lidar_range_m: float = 5.0
+    lidar_labels: tuple[str, ...] = ()
+    """Each lidar ray's direction in words (`sensors.lidar.ray_labels`), in observation order."""
 
 
 def scenario_facts(scenario, file: str | Path) -> ScenarioFacts:  # noqa: ANN001 - envs.scenario.Scenario
@@ -97,7 +99,8 @@ def scenario_facts(scenario, file: str | Path) -> ScenarioFacts:  # noqa: ANN001
         file=Path(file).name, frame=scenario.task.action.frame, layout=layout, num_drones=scenario.num_drones,
         lone_obstacle=len(static) == 1 and static[0].shape.kind != "wall",
         opening=any(o.shape.opening is not None for o in static),
-        lidar_range_m=scenario.limits.lidar_range_m)
+        lidar_range_m=scenario.limits.lidar_range_m,
+        lidar_labels=next((f.labels for f in scenario.task.observation if f.name == "lidar"), ()))
 
 
 @dataclass
@@ -276,7 +279,8 @@ def _lidar_condition(after: list[tuple[str, np.ndarray, list[int]]], code: int, 
         return None
     reach = reach[ray]
     feature = _feature(facts.layout, "lidar", ray)
-    return [{"feature": feature, "op": "<=", "value": reach}], f"something within {reach:g} m on {feature}"
+    where = f"{facts.lidar_labels[ray]} ({feature})" if ray < len(facts.lidar_labels) else f"on {feature}"
+    return [{"feature": feature, "op": "<=", "value": reach}], f"something within {reach:g} m {where}"
 
 
 def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts,

@@ -25,7 +25,7 @@ from sitl_bridge.physics.bullet import p
 from sitl_bridge.physics.simulation import Simulation
 from sitl_bridge.world.schema import LidarConfig
 
-__all__ = ["Lidar", "LidarConfig", "LidarScan", "ray_directions_flu"]
+__all__ = ["Lidar", "LidarConfig", "LidarScan", "ray_directions_flu", "ray_labels"]
 
 _HIT_BODY = operator.itemgetter(0)  # rayTestBatch result: (body, link, fraction, position, normal)
 _HIT_FRACTION = operator.itemgetter(2)
@@ -48,6 +48,30 @@ class LidarScan:
 def _fan(count: int, fov_deg: float) -> list[float]:
     fov = math.radians(fov_deg)
     return [-fov / 2.0 + fov * (i + 0.5) / count for i in range(count)]
+
+
+STRAIGHT_DEG = 5
+"""A ray within this many degrees of forward, backward, up or down is named plainly so."""
+
+
+def ray_labels(config: LidarConfig) -> dict[str, tuple[str, ...]]:
+    """Each ray's direction in words, per group, for rules a person reads: `ahead`, `30 deg left`,
+    `behind`, `above`, `below, 38 deg ahead` (ahead = the body's forward)."""
+    def horizontal(a: float) -> str:
+        deg = round(math.degrees(a))
+        if abs(deg) <= STRAIGHT_DEG:
+            return "ahead"
+        if abs(deg) >= 180 - STRAIGHT_DEG:
+            return "behind"
+        return f"{abs(deg)} deg {'left' if deg > 0 else 'right'}"  # FLU: +y is left
+
+    def fan(where: str, b: float) -> str:
+        deg = round(math.degrees(b))
+        return where if abs(deg) <= STRAIGHT_DEG else f"{where}, {abs(deg)} deg {'ahead' if deg > 0 else 'back'}"
+
+    return {"horizontal": tuple(horizontal(a) for a in _fan(config.horizontal_rays, config.horizontal_fov_deg)),
+            "up": tuple(fan("above", b) for b in _fan(config.up_rays, config.up_fov_deg)),
+            "down": tuple(fan("below", b) for b in _fan(config.down_rays, config.down_fov_deg))}
 
 
 def ray_directions_flu(config: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
