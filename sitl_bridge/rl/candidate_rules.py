@@ -31,7 +31,8 @@ ANALYSIS_VERSION = 4
 they report, so the report's cached behaviour and rules are made again (2: passing order, rule 5
 by it, the end of a climb or dive under another drone; 3: traffic rule sets flown in the
 one-drone scenarios before them, their rules on the other drone left out; 4: climbs to a wall's
-opening, `to_opening`, a rule of their own)."""
+opening, `to_opening`, a rule of their own; a lidar condition on the ray that tells the
+manoeuvre's steps apart)."""
 SEED_SUPPORT_SHARE = 0.5
 """A manoeuvre holds in a seed when it shows in at least this share of its successful episodes."""
 YAML_MIN_SEED_SHARE = 0.5
@@ -269,6 +270,8 @@ def _lidar_condition(after: list[tuple[str, np.ndarray, list[int]]], code: int, 
     reach = {int(r): _up(float(triggers[seen[:, r], r].max())) for r in np.flatnonzero(seen.any(axis=0))}
     steps = np.concatenate([rows[:len(actions), block] for _, rows, actions in after])
     flew = np.concatenate([np.asarray(actions[:len(rows)]) == code for _, rows, actions in after])
+    if not flew.any():
+        return None
 
     def youden(r: int) -> float:
         holds = steps[:, r] <= reach[r]
