@@ -145,7 +145,7 @@ def test_ray_labels_name_each_direction_as_it_points() -> None:
     horizontal, up, down = ray_directions_flu(config)
     assert [len(labels[g]) for g in ("horizontal", "up", "down")] == [len(horizontal), len(up), len(down)]
     assert labels["horizontal"][17] == "ahead" and labels["horizontal"][0] == "behind"
-    for label, (x, y, _) in zip(labels["horizontal"], horizontal, strict=True):
+    for label, (_, y, _) in zip(labels["horizontal"], horizontal, strict=True):
         if label.endswith("left"):
             assert y > 0.0   # FLU: +y is the body's left
         elif label.endswith("right"):
