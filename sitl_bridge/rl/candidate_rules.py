@@ -160,8 +160,11 @@ def _feature(layout: Mapping[str, slice], name: str, index: int) -> str:
     return name if block.stop - block.start == 1 else f"{name}[{index}]"
 
 
-def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
-                  ) -> list[tuple[str, np.ndarray, list[int]]]:
+After = list[tuple[str, np.ndarray, list[int]]]
+"""(run, observations, actions) from the first step of a manoeuvre on, per drone-episode."""
+
+
+def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations) -> After:
     """(run, observations and actions from the first step of `manoeuvre` on) of every successful
     drone-episode that shows it and has its observations recorded."""
     found = []
@@ -177,12 +180,10 @@ def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Obs
     return found
 
 
-def _triggers(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
-              ) -> tuple[np.ndarray, list[str]]:
-    """Observations before the first step of `manoeuvre` in the successful episodes (rows), and
-    the run (seed) each row comes from."""
-    found = _from_trigger(analysis, manoeuvre, observations)
-    return np.array([rows[0] for _, rows, _ in found]), [run for run, _, _ in found]
+def _triggers(after: After) -> tuple[np.ndarray, list[str]]:
+    """Observations before the first step of the manoeuvre (rows), and the run (seed) each row
+    comes from."""
+    return np.array([rows[0] for _, rows, _ in after]), [run for run, _, _ in after]
 
 
 def _priority_convention(rows: np.ndarray, runs: list[str], facts: ScenarioFacts,
@@ -232,8 +233,7 @@ def _drone_condition(rows: np.ndarray, facts: ScenarioFacts, manoeuvre: str) -> 
     return when, situation
 
 
-def _vertical_stop(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
-                   facts: ScenarioFacts, runs: set[str]) -> dict | None:
+def _vertical_stop(after: After, manoeuvre: str, facts: ScenarioFacts, runs: set[str]) -> dict | None:
     """For a climb over or a dive under another drone: the condition that ends it, the other
     drone not yet as far below / above as the networks took it (the median, over the episodes of
     the kept runs, of the largest height difference built while the other was still ahead).
@@ -243,7 +243,7 @@ def _vertical_stop(analysis: BehaviourAnalysis, manoeuvre: str, observations: Ob
     ahead, up = facts.layout["travel_others"].start + 1, facts.layout["travel_others"].start + 2
     sign = 1.0 if manoeuvre == "dive_under" else -1.0  # the other above me (dive) or below (climb)
     gaps = []
-    for run, rows, _ in _from_trigger(analysis, manoeuvre, observations):
+    for run, rows, _ in after:
         rows = rows[rows[:, ahead] > 0.0]
         if run in runs and len(rows):
             gaps.append(float((sign * rows[:, up]).max()))
@@ -254,8 +254,7 @@ def _vertical_stop(analysis: BehaviourAnalysis, manoeuvre: str, observations: Ob
     return {"feature": feature, "op": "<" if sign > 0 else ">", "value": round(sign * gap, 6)}
 
 
-def _lidar_condition(after: list[tuple[str, np.ndarray, list[int]]], code: int, facts: ScenarioFacts,
-                     ) -> tuple[list[dict], str] | None:
+def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[list[dict], str] | None:
     """`ray <= reach` for the ray that best tells the steps from the trigger on where the network
     flew the manoeuvre's action `code` from those where it flew another (Youden's J: share of the
     former where it holds minus share of the latter); reach is the longest reading of that ray at
@@ -308,7 +307,8 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
         return rule
     doing = f"{WORDS[manoeuvre]} (action {code} {rule.action_name})"
     about_drone = manoeuvre in OTHER_DRONE or (facts.num_drones > 1 and manoeuvre not in ABOUT_WORLD)
-    rows, runs = _triggers(analysis, manoeuvre, observations)
+    after = _from_trigger(analysis, manoeuvre, observations)
+    rows, runs = _triggers(after)
     convention, convention_note = None, ""
     if about_drone and manoeuvre not in OTHER_DRONE and facts.num_drones > 1:
         rows, runs, convention, convention_note = _priority_convention(rows, runs, facts)
@@ -321,13 +321,13 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
     condition = None
     if len(rows):
         condition = (_drone_condition(rows, facts, manoeuvre) if about_drone
-                     else _lidar_condition(_from_trigger(analysis, manoeuvre, observations), code, facts))
+                     else _lidar_condition(after, code, facts))
         if condition is not None and convention is not None:
             when, situation = condition
             when.insert(0, {"feature": _feature(facts.layout, "own_priority", 0),
                             "op": ">=" if convention else "<", "value": 0.5})
             condition = when, situation + (" and own right of way" if convention else " and no right of way")
-        stop = _vertical_stop(analysis, manoeuvre, observations, facts, set(runs)) if about_drone else None
+        stop = _vertical_stop(after, manoeuvre, facts, set(runs)) if about_drone else None
         if condition is not None and stop is not None:
             when, situation = condition
             where = "below" if manoeuvre == "dive_under" else "above"
