@@ -276,8 +276,9 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
         holds = steps[:, r] <= reach[r]
         return float(holds[flew].mean() - (holds[~flew].mean() if (~flew).any() else 0.0))
 
-    ray = max(reach, key=youden, default=None)  # first of equals: the lowest index
-    if ray is None or youden(ray) <= 0.0:
+    scores = {r: youden(r) for r in reach}
+    ray = max(scores, key=scores.__getitem__, default=None)  # first of equals: the lowest index
+    if ray is None or scores[ray] <= 0.0:
         return None
     reach = reach[ray]
     feature = _feature(facts.layout, "lidar", ray)

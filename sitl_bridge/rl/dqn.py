@@ -206,6 +206,10 @@ class DQNAgent:
         random_action = int(rng.integers(self.shape.n_actions))
         if explore:
             return random_action
+        return self.greedy(obs)
+
+    def greedy(self, obs: np.ndarray) -> int:
+        """The online network's best action for one observation (argmax Q)."""
         return int(np.argmax(self.q_values(obs)))
 
     def act_batch(self, obs: np.ndarray, epsilon: float, rng: np.random.Generator) -> np.ndarray:

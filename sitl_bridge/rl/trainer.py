@@ -130,7 +130,7 @@ class Trainer:
         shape = NetworkShape(self.env.obs_dim, self.env.n_actions, config.layers, config.hidden_units,
                              dueling=config.dueling, normalize=config.normalize_observations)
         self.agent = DQNAgent(shape, config, self.device)
-        self.explorer = (RepeatedExploration(self.greedy_action, shape.n_actions, config.explore_repeat_max,
+        self.explorer = (RepeatedExploration(self.agent.greedy, shape.n_actions, config.explore_repeat_max,
                                              config.explore_repeat_exponent)
                          if config.explore_repeat_max > 1 else None)
         priorities = (Priorities(config.replay_capacity, config.per_alpha, config.per_epsilon)
@@ -422,13 +422,9 @@ class Trainer:
         return result
 
     def _greedy(self, episodes: int, flown: Sequence[Trace] = ()) -> tuple[EvalResult, list[Trace]]:
-        return evaluate_on(self.env, self.greedy_action,
+        return evaluate_on(self.env, self.agent.greedy,
                            world=self.spec.world, episodes=episodes, seed=self.spec.seed,
                            progress=self.progress, desc="greedy evaluation", flown=flown)
-
-    def greedy_action(self, obs: np.ndarray) -> int:
-        """The current network's best action for one drone's observation."""
-        return int(np.argmax(self.agent.q_values(obs)))
 
     def _keep_if_best(self, result: EvalResult) -> None:
         """Copy the checkpoint just evaluated to `best.safetensors` when its greedy success beats
