@@ -416,7 +416,8 @@ def test_a_climb_to_the_window_becomes_a_rule_that_flies_the_window(tmp_path: Pa
     """The thesis's W behaviour (5 5 5 5, then on through the window): the climb to the opening
     is its own manoeuvre, and its rule tests the ray that tells the climbing steps from the others
     (the forward ray sees the wall until the drone is level with the window), not the side wall
-    that reads shorter at every step. Flown, the rules pass the window."""
+    that reads shorter at every step; of the rays that score alike, the middle one (straight ahead).
+    Flown, the rules pass the window."""
     scenario_file = WORLDS / "window.yaml"
     scenario = load_scenario(scenario_file)
     facts = scenario_facts(scenario, scenario_file)
@@ -431,7 +432,8 @@ def test_a_climb_to_the_window_becomes_a_rule_that_flies_the_window(tmp_path: Pa
         runs.append(RunBehaviour(str(seed), classify([climb], run=str(seed), shared_openings=wall_openings)))
         rows = np.full((10, lidar.stop), facts.lidar_range_m)
         rows[:, lidar.start] = 3.5  # a side wall, as near at every step
-        rows[:4, lidar.start + 17] = 3.9  # the north wall ahead while below the window
+        # the north wall ahead while below the window, seen alike by the rays 10 deg either side
+        rows[:4, lidar.start + 16:lidar.start + 19] = 3.9
         obs[(str(seed), 0, 0)] = rows
     (drone,) = runs[0].episodes[0].drones
     assert drone.manoeuvre == "to_opening" and (drone.trigger_step, drone.action) == (0, 5)

@@ -26,7 +26,7 @@ import yaml
 from sitl_bridge.rl.actions_named import action_code, action_name
 from sitl_bridge.rl.behaviour import BehaviourAnalysis, EpisodeBehaviour, split_text
 
-ANALYSIS_VERSION = 4
+ANALYSIS_VERSION = 5
 """Bumped when the classification, the rule extraction or the rules' verification changes what
 they report, so the report's cached behaviour and rules are made again (2: passing order, rule 5
 by it, the end of a climb or dive under another drone; 3: traffic rule sets flown in the
@@ -260,7 +260,7 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
     former where it holds minus share of the latter); reach is the longest reading of that ray at
     the triggers where it saw something. The ray that merely read shortest would often be the
     ground below or a side wall, true whatever the network does. None when no ray tells them
-    apart (J <= 0)."""
+    apart (J <= 0). Of equally good rays, the middle one."""
     if "lidar" not in facts.layout or not after:
         return None
     block = facts.layout["lidar"]
@@ -277,9 +277,13 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
         return float(holds[flew].mean() - (holds[~flew].mean() if (~flew).any() else 0.0))
 
     scores = {r: youden(r) for r in reach}
-    ray = max(scores, key=scores.__getitem__, default=None)  # first of equals: the lowest index
-    if ray is None or scores[ray] <= 0.0:
+    best = max(scores.values(), default=0.0)
+    if best <= 0.0:
         return None
+    # Neighbouring rays that see the same obstacle score the same; the middle one of such a fan
+    # (index order is angle order within a group) is the least sensitive to where it points.
+    equals = sorted(r for r, j in scores.items() if j >= best - 1e-9)
+    ray = equals[len(equals) // 2]
     reach = reach[ray]
     feature = _feature(facts.layout, "lidar", ray)
     where = f"{facts.lidar_labels[ray]} ({feature})" if ray < len(facts.lidar_labels) else f"on {feature}"
