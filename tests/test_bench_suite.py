@@ -31,7 +31,9 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
         assert entry["fraction_of_bare"]["median"] == entry["rtf"]["median"] / entry["bare_rtf_adjacent"], key
     assert result["train_steps_per_s"]["updates"] > 0  # DQN updates were part of the timing
     assert set(result["reset_s"]) == {"direct", "stub"}
-    assert result["parallel"]["speedup_2_over_1"] > 0
+    parallel = result["parallel"]
+    assert parallel["speedup_2_over_1"] > 0 and parallel["bare_speedup_2_over_1"] > 0
+    assert parallel["fraction_of_bare_speedup"] == parallel["speedup_2_over_1"] / parallel["bare_speedup_2_over_1"]
     # the stub runs in this process: its CPU time per env step is all here
     cpu = result["stub"]["cpu_ms_per_step"]
     assert cpu["this_process"] > 0 and cpu["total"] == cpu["this_process"] + cpu["children"]

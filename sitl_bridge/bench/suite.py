@@ -18,7 +18,9 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
 * `train_steps_per_s`: DQN training env steps per wall second, updates included (thesis O
   settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
 * `parallel`: `direct` envs in 1 and 2 worker processes, aggregate real-time factor and the
-  speed-up from 1 to 2 workers (about 2 on two idle cores).
+  speed-up from 1 to 2 workers (about 2 on two idle cores); `bare_speedup_2_over_1`, the same
+  for the bare pybullet loop (what the machine's cores give two CPU-bound processes), and
+  `fraction_of_bare_speedup`, the env's speed-up as a share of it.
 * `px4_parallel`: the same with `px4` envs, each worker its own PX4 instance (each worker's env
   claims one in 0..9 through `autopilot.allocation`, never shared; `instances` says which), in env steps per
   wall second (`steps_per_s`): one PX4-backed env process against two at once, `reps` timed
@@ -286,13 +288,39 @@ def _parallel_rtf(workers: int, size: Size, sim_s: float, windows: int = 1, auto
     return rtfs, [r[4] for r in runs if r[0] == 0]
 
 
+def _bare_worker(seconds: float, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
+    barrier.wait(timeout=600)
+    results.put(bare_pybullet_rtf(seconds)[0])
+
+
+def _bare_speedup(seconds: float) -> float:
+    """Aggregate real-time factor of the bare pybullet loop in two processes at once over one:
+    what this machine's cores give two CPU-bound processes with no Python work (virtual CPUs
+    that share a physical core give well under 2)."""
+    ctx = mp.get_context("spawn")
+    barrier, results = ctx.Barrier(2), ctx.Queue()
+    procs = [ctx.Process(target=_bare_worker, args=(seconds, barrier, results)) for _ in range(2)]
+    for proc in procs:
+        proc.start()
+    try:
+        two = results.get(timeout=600) + results.get(timeout=600)
+    finally:
+        for proc in procs:
+            proc.join(timeout=60)
+            if proc.is_alive():
+                proc.kill()
+    return two / bare_pybullet_rtf(seconds)[0]
+
+
 def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
     reps = max(1, size.reps - 1)
     one = [_parallel_rtf(1, size, size.parallel_sim_s)[0][0] for _ in range(reps)]
     two = [_parallel_rtf(2, size, size.parallel_sim_s)[0][0] for _ in range(reps)]
+    speedup = statistics.median(two) / statistics.median(one)
+    bare_speedup = statistics.median(_bare_speedup(size.bare_s) for _ in range(reps))
     return {"workers_1": _rtf_entry(one, bare), "workers_2": _rtf_entry(two, bare),
-            "speedup_2_over_1": statistics.median(two) / statistics.median(one),
-            "cpu_count": os.cpu_count()}
+            "speedup_2_over_1": speedup, "bare_speedup_2_over_1": bare_speedup,
+            "fraction_of_bare_speedup": speedup / bare_speedup, "cpu_count": os.cpu_count()}
 
 
 def _px4_parallel_case(size: Size, bare: float, px4_bin: str) -> dict[str, Any]:
@@ -393,7 +421,8 @@ def _summary(figures: dict[str, Any]) -> str:
     if "workers_2" in figures:
         return (f"1 worker {figures['workers_1']['rtf']['median']:.0f}x, 2 workers "
                 f"{figures['workers_2']['rtf']['median']:.0f}x aggregate, "
-                f"speed-up {figures['speedup_2_over_1']:.2f}")
+                f"speed-up {figures['speedup_2_over_1']:.2f} (bare pybullet's "
+                f"{figures['bare_speedup_2_over_1']:.2f})")
     rtf, frac = figures["rtf"], figures["fraction_of_bare"]
     text = (f"{rtf['median']:.1f}x real time (min {rtf['min']:.1f}, max {rtf['max']:.1f}); "
             f"{frac['median']:.3f} of bare")
