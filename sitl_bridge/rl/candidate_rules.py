@@ -260,7 +260,8 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
     former where it holds minus share of the latter); reach is the longest reading of that ray at
     the triggers where it saw something. The ray that merely read shortest would often be the
     ground below or a side wall, true whatever the network does. None when no ray tells them
-    apart (J <= 0). Of equally good rays, the middle one."""
+    apart (J <= 0). Of the neighbours that score within one standard error of the best ray, the
+    middle one."""
     if "lidar" not in facts.layout or not after:
         return None
     block = facts.layout["lidar"]
@@ -272,18 +273,29 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
     if not flew.any():
         return None
 
-    def youden(r: int) -> float:
+    def rates(r: int) -> tuple[float, float]:
         holds = steps[:, r] <= reach[r]
-        return float(holds[flew].mean() - (holds[~flew].mean() if (~flew).any() else 0.0))
+        return float(holds[flew].mean()), float(holds[~flew].mean()) if (~flew).any() else 0.0
 
-    scores = {r: youden(r) for r in reach}
-    best = max(scores.values(), default=0.0)
-    if best <= 0.0:
+    scores = {r: np.subtract(*rates(r)) for r in reach}
+    ray = max(scores, key=scores.__getitem__, default=None)
+    if ray is None or scores[ray] <= 0.0:
         return None
-    # Neighbouring rays that see the same obstacle score the same; the middle one of such a fan
-    # (index order is angle order within a group) is the least sensitive to where it points.
-    equals = sorted(r for r, j in scores.items() if j >= best - 1e-9)
-    ray = equals[len(equals) // 2]
+    # Neighbouring rays that see the same obstacle score alike; within one standard error of the
+    # best (the 1-SE rule), they are not told apart by the data, and the middle of that fan is
+    # the least sensitive to where it points (a side ray sees past an opening's edge).
+    hit, false = rates(ray)
+    standard_error = np.sqrt(hit * (1 - hit) / flew.sum() + false * (1 - false) / max((~flew).sum(), 1))
+    def group(r: int) -> str:  # horizontal, above or below: a fan does not cross from one to another
+        label = facts.lidar_labels[r] if r < len(facts.lidar_labels) else ""
+        return label.split(",")[0] if label.startswith(("above", "below")) else "horizontal"
+
+    fan = [ray]
+    for step in (-1, 1):
+        while ((r := fan[-1 if step > 0 else 0] + step) in scores and group(r) == group(ray)
+               and scores[r] >= scores[ray] - standard_error):
+            fan.insert(len(fan) if step > 0 else 0, r)
+    ray = fan[len(fan) // 2]
     reach = reach[ray]
     feature = _feature(facts.layout, "lidar", ray)
     where = f"{facts.lidar_labels[ray]} ({feature})" if ray < len(facts.lidar_labels) else f"on {feature}"
