@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from sitl_bridge.envs.features import observation_layout
+from sitl_bridge.envs.features import index_words, observation_layout
 from sitl_bridge.envs.scenario import load_scenario
 from sitl_bridge.errors import load_yaml
 from sitl_bridge.rl.actions_named import action_code
@@ -112,7 +112,7 @@ def test_tree_policy_paths_text_and_rules_round_trip(tmp_path: Path) -> None:
     text = tree_text(tree, labels, "goal")
     assert "if position[1] <= 2.5:" in text and "position[2] <= 3" in text
     assert "forward" in text and "toward goal" in text and "hover" in text  # goal-frame names
-    assert "where position = x, y, z" in text
+    assert "where position = x, y, z" in text and "rays:" not in text  # no lidar test, no ray line
 
     document = tree_rules(tree, labels, frame="world", name="t", covers=["empty.yaml"], source="test")
     file = tmp_path / "rules.yaml"
@@ -131,6 +131,17 @@ def test_tree_policy_paths_text_and_rules_round_trip(tmp_path: Path) -> None:
                 break
         else:
             pytest.fail(f"no rule holds for {obs}")
+
+
+def test_tree_text_says_where_each_ray_it_tests_points() -> None:
+    scenario = load_scenario(EMPTY)  # 35 horizontal rays, the last one looking back
+    layout = observation_layout(scenario)
+    labels = feature_labels(layout, 51)
+    ahead, last = layout["lidar"].start + 17, layout["lidar"].stop - 1
+    tree = TreePolicy(Split(ahead, 3.0, Leaf(UP, 2), Split(last, 1.0, Leaf(UP, 1), Leaf(TOWARD_GOAL, 3))))
+    text = tree_text(tree, labels, "world", index_words(scenario))
+    assert text.splitlines()[-1] == "rays: lidar[17] ahead; lidar[34] behind"
+    assert set(index_words(scenario)) == set(range(layout["lidar"].start, last + 1))  # the rays only
 
 
 def test_a_single_leaf_reads_as_always() -> None:

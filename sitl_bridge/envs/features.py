@@ -344,3 +344,14 @@ def observation_layout(scenario: Scenario) -> dict[str, slice]:
         layout[key] = slice(start, start + feature.size)
         start += feature.size
     return layout
+
+
+def index_words(scenario: Scenario) -> dict[int, str]:
+    """Observation index -> what it points at in words, for the features that say it (each lidar
+    ray's direction: `ahead`, `below, 37 deg ahead`); others are left out."""
+    words: dict[int, str] = {}
+    start = 0
+    for feature in scenario.task.observation:
+        words.update({start + i: label for i, label in enumerate(feature.labels)})
+        start += feature.size
+    return words

@@ -225,6 +225,7 @@ def _flown(env: DronesEnv, policy: Policy, world: str, episodes: int, seed: int)
 
 
 def distill_policy(env: DronesEnv, q_fn: QFunction, teacher: Policy, *, layout: dict[str, slice],
+                   words: dict[int, str] | None = None,
                    frame: str = "world", world: str = "", covers: list[str] | None = None,
                    max_depth: int = 6, iterations: int = 5, episodes: int = 20, seed: int = 0,
                    source: str = "", on_candidate: Callable[[Candidate], None] | None = None) -> DistillResult:
@@ -251,7 +252,7 @@ def distill_policy(env: DronesEnv, q_fn: QFunction, teacher: Policy, *, layout: 
         mean_return=tree_result.mean_reward, network_return=network_result.mean_reward,
         crash=tree_result.crash_rate, network_crash=network_result.crash_rate,
         chosen_iteration=best.iteration, candidates=[c.to_dict() for c in candidates],
-        text=tree_text(tree, labels, frame), rules=rules, tree=tree)
+        text=tree_text(tree, labels, frame, words), rules=rules, tree=tree)
 
 
 def network_q(network: Any) -> QFunction:
@@ -270,7 +271,7 @@ def distill_run(run_dir: str | Path, *, world: str | Path | None = None, max_dep
                 iterations: int = 5, episodes: int = 20, seed: int = 0, autopilot: str = "direct",
                 on_candidate: Callable[[Candidate], None] | None = None) -> DistillResult:
     """Distil the greedy policy of a run directory (or checkpoint) in its own scenario, or `world`."""
-    from sitl_bridge.envs.features import observation_layout
+    from sitl_bridge.envs.features import index_words, observation_layout
     from sitl_bridge.envs.scenario import load_scenario
     from sitl_bridge.rl.drones_env import scenario_env_factory
     from sitl_bridge.rl.policy import policy_from_checkpoint
@@ -290,6 +291,7 @@ def distill_run(run_dir: str | Path, *, world: str | Path | None = None, max_dep
             raise ValueError(f"{policy.source}: the network takes {policy.obs_dim} observation values, "
                              f"{world} gives {env.obs_dim}")
         return distill_policy(env, network_q(policy.network), policy, layout=observation_layout(scenario),
+                              words=index_words(scenario),
                               frame=scenario.task.action.frame, world=str(world), covers=covers,
                               max_depth=max_depth, iterations=iterations, episodes=episodes, seed=seed,
                               source=str(home or run_dir), on_candidate=on_candidate)

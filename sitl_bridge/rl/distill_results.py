@@ -29,6 +29,9 @@ from sitl_bridge.rl.experiment_results import EVAL_SEED_BASE
 log = logging.getLogger(__name__)
 
 TREES_DIR = "trees"
+TEXT_FORMAT = 2
+"""Bumped when the tree's text changes (2: the rays it tests named by direction): a cached tree
+is distilled again."""
 TARGET_DEPTH = 6
 TARGET_FIDELITY = 0.95
 TARGET_SUCCESS_GAP = 0.05
@@ -81,7 +84,8 @@ def _tree_entry(stem: str, results: dict[str, Any], out: Path, settings: ReportS
     key = report_cache.cache_key(
         checkpoint=report_cache.checkpoint_digest(out / seed["run_dir"]), seed=seed["seed"],
         world=hashlib.sha256(world.read_bytes()).hexdigest(), depth=settings.distill_depth,
-        iterations=settings.distill_iterations, episodes=settings.distill_episodes, episode_seed=EVAL_SEED_BASE)
+        iterations=settings.distill_iterations, episodes=settings.distill_episodes, episode_seed=EVAL_SEED_BASE,
+        text=TEXT_FORMAT)
     cache = out / TREES_DIR / f"{stem}.json"
     tree = report_cache.load(cache, key)
     if tree is None or not all((out / tree[k]).is_file() for k in ("text_file", "rules_file")):

@@ -160,9 +160,10 @@ def condition_text(condition: Condition, labels: list[str]) -> str:
     return f"{labels[condition.feature]} {condition.op} {_number(condition.value)}"
 
 
-def tree_text(tree: TreePolicy, labels: list[str], frame: str = "world") -> str:
+def tree_text(tree: TreePolicy, labels: list[str], frame: str = "world", words: Mapping[int, str] | None = None) -> str:
     """The tree as nested if-then text, actions named in `frame`, each leaf with its share of the
-    training states, followed by what the features it uses mean."""
+    training states, followed by what the features it uses mean and, for the indices `words`
+    names (`features.index_words`: lidar rays), where each one points."""
     total = sum(leaf.samples for _, leaf in tree.paths()) or 1
     lines: list[str] = []
 
@@ -189,6 +190,9 @@ def tree_text(tree: TreePolicy, labels: list[str], frame: str = "world") -> str:
         lines.append("where " + "; ".join(
             f"{n} = {FEATURE_MEANINGS[n][0]} [{FEATURE_MEANINGS[n][1]}]" if n in FEATURE_MEANINGS else n
             for n in names))
+    pointing = [f"{labels[i]} {words[i]}" for i in tree.used_features() if words and i in words]
+    if pointing:
+        lines.append("rays: " + "; ".join(pointing))
     return "\n".join(lines)
 
 
