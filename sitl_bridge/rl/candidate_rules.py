@@ -32,7 +32,7 @@ they report, so the report's cached behaviour and rules are made again (2: passi
 by it, the end of a climb or dive under another drone; 3: traffic rule sets flown in the
 one-drone scenarios before them, their rules on the other drone left out; 4: climbs to a wall's
 opening, `to_opening`, a rule of their own; a lidar condition on the ray that tells the
-manoeuvre's steps apart)."""
+manoeuvre's steps apart; 5: of the rays alike within one standard error, the middle one)."""
 SEED_SUPPORT_SHARE = 0.5
 """A manoeuvre holds in a seed when it shows in at least this share of its successful episodes."""
 YAML_MIN_SEED_SHARE = 0.5
@@ -274,28 +274,33 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
         return None
 
     def rates(r: int) -> tuple[float, float]:
+        """Share of the steps that flew `code` where ray r's condition holds, and of the others."""
         holds = steps[:, r] <= reach[r]
         return float(holds[flew].mean()), float(holds[~flew].mean()) if (~flew).any() else 0.0
 
-    scores = {r: np.subtract(*rates(r)) for r in reach}
+    scores = {r: hit - false for r in reach for hit, false in [rates(r)]}
     ray = max(scores, key=scores.__getitem__, default=None)
     if ray is None or scores[ray] <= 0.0:
         return None
-    # Neighbouring rays that see the same obstacle score alike; within one standard error of the
-    # best (the 1-SE rule), they are not told apart by the data, and the middle of that fan is
+    # Neighbouring rays that see the same obstacle score alike; those within one standard error
+    # of the best (the 1-SE rule) are not told apart by the data, and the middle of that fan is
     # the least sensitive to where it points (a side ray sees past an opening's edge).
     hit, false = rates(ray)
     standard_error = np.sqrt(hit * (1 - hit) / flew.sum() + false * (1 - false) / max((~flew).sum(), 1))
-    def group(r: int) -> str:  # horizontal, above or below: a fan does not cross from one to another
+
+    def group(r: int) -> str:  # horizontal, above or below: a fan stays within one
         label = facts.lidar_labels[r] if r < len(facts.lidar_labels) else ""
         return label.split(",")[0] if label.startswith(("above", "below")) else "horizontal"
 
-    fan = [ray]
-    for step in (-1, 1):
-        while ((r := fan[-1 if step > 0 else 0] + step) in scores and group(r) == group(ray)
-               and scores[r] >= scores[ray] - standard_error):
-            fan.insert(len(fan) if step > 0 else 0, r)
-    ray = fan[len(fan) // 2]
+    def alike(r: int) -> bool:
+        return r in scores and group(r) == group(ray) and scores[r] >= scores[ray] - standard_error
+
+    low = high = ray
+    while alike(low - 1):
+        low -= 1
+    while alike(high + 1):
+        high += 1
+    ray = (low + high) // 2
     reach = reach[ray]
     feature = _feature(facts.layout, "lidar", ray)
     where = f"{facts.lidar_labels[ray]} ({feature})" if ray < len(facts.lidar_labels) else f"on {feature}"
