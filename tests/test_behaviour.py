@@ -20,6 +20,7 @@ from sitl_bridge.rl.behaviour import (
     openings,
 )
 from sitl_bridge.rl.candidate_rules import (
+    _lidar_condition,
     candidate_rules,
     fidelity,
     rules_document,
@@ -452,3 +453,24 @@ def test_a_climb_to_the_window_becomes_a_rule_that_flies_the_window(tmp_path: Pa
     written = write_rules_yaml(tmp_path / "window.yaml", rules_document(list(rules.values()), analysis, facts))
     result, _, _ = evaluate_rules(written, scenario_file, episodes=2)
     assert result.success_rate == 1.0
+
+
+def test_of_two_alike_rays_in_the_middle_the_rule_tests_the_better_one() -> None:
+    """Rays 45 (below, 22 deg ahead) and 46 (below, 37 deg ahead) tell the climbing steps apart
+    nearly as well (J 0.71 and 0.79, within one standard error): both are the fan's middle, and
+    the rule tests the one that scores better, not the lower index."""
+    scenario_file = WORLDS / "obstacle.yaml"
+    facts = scenario_facts(load_scenario(scenario_file), scenario_file)
+    lidar = facts.layout["lidar"]
+    after = []
+    for run in range(2):  # per run: 4 climbing steps, then 6 others
+        rows = np.full((10, lidar.stop), facts.lidar_range_m)
+        rows[:4, lidar.start + 45:lidar.start + 47] = 3.0
+        rows[3 * run, lidar.start + 46] = facts.lidar_range_m  # one climbing step each sees nothing
+        rows[3 * run, lidar.start + 45] = facts.lidar_range_m
+        rows[5, lidar.start + 45:lidar.start + 47] = 3.0  # a later step sees it too
+        rows[7 + run, lidar.start + 45] = 3.0  # ray 45 also on one more: a little worse
+        after.append((str(run), rows, [5] * 4 + [6] * 6))
+    when, text = _lidar_condition(after, 5, facts)
+    assert when == [{"feature": "lidar[46]", "op": "<=", "value": 3.0}]
+    assert text == "something within 3 m below, 37 deg ahead (lidar[46])"

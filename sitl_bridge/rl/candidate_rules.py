@@ -26,13 +26,14 @@ import yaml
 from sitl_bridge.rl.actions_named import action_code, action_name
 from sitl_bridge.rl.behaviour import BehaviourAnalysis, EpisodeBehaviour, split_text
 
-ANALYSIS_VERSION = 5
+ANALYSIS_VERSION = 6
 """Bumped when the classification, the rule extraction or the rules' verification changes what
 they report, so the report's cached behaviour and rules are made again (2: passing order, rule 5
 by it, the end of a climb or dive under another drone; 3: traffic rule sets flown in the
 one-drone scenarios before them, their rules on the other drone left out; 4: climbs to a wall's
 opening, `to_opening`, a rule of their own; a lidar condition on the ray that tells the
-manoeuvre's steps apart; 5: of the rays alike within one standard error, the middle one)."""
+manoeuvre's steps apart; 5: of the rays alike within one standard error, the middle one; 6: of
+two middles, the better)."""
 SEED_SUPPORT_SHARE = 0.5
 """A manoeuvre holds in a seed when it shows in at least this share of its successful episodes."""
 YAML_MIN_SEED_SHARE = 0.5
@@ -261,7 +262,7 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
     the triggers where it saw something. The ray that merely read shortest would often be the
     ground below or a side wall, true whatever the network does. None when no ray tells them
     apart (J <= 0). Of the neighbours that score within one standard error of the best ray, the
-    middle one."""
+    middle one (of two in the middle, the better)."""
     if "lidar" not in facts.layout or not after:
         return None
     block = facts.layout["lidar"]
@@ -300,7 +301,7 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
         low -= 1
     while alike(high + 1):
         high += 1
-    ray = (low + high) // 2
+    ray = max({(low + high) // 2, (low + high + 1) // 2}, key=scores.__getitem__)  # of two middles, the better
     reach = reach[ray]
     feature = _feature(facts.layout, "lidar", ray)
     where = f"{facts.lidar_labels[ray]} ({feature})" if ray < len(facts.lidar_labels) else f"on {feature}"
