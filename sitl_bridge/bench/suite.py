@@ -41,7 +41,7 @@ import platform
 import statistics
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -258,29 +258,36 @@ def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, sim_s: f
             env.close()
 
 
-def _parallel_rtf(workers: int, size: Size, sim_s: float, windows: int = 1, autopilot: str = "direct",
-                  px4_bin: str | None = None) -> tuple[list[float], list[tuple[int, ...]]]:
-    """Aggregate real-time factor of `workers` worker processes, each flying an env, per timed
-    window; and the instances each worker flew (session backends)."""
-    ctx = mp.get_context("spawn")  # a fresh interpreter: no pybullet state copied by fork
+@contextlib.contextmanager
+def _together(target: Callable[..., None], args: tuple, workers: int) -> Iterator[Any]:
+    """`workers` fresh processes (spawned: no pybullet state copied by fork) each running
+    `target(*args, barrier, results)`; yields the results queue; on exit each is joined, or
+    killed when it does not end."""
+    ctx = mp.get_context("spawn")
     barrier, results = ctx.Barrier(workers), ctx.Queue()
-    procs = [ctx.Process(target=_parallel_worker, args=(autopilot, px4_bin, windows, sim_s,
-                                                        size.warmup_s, barrier, results))
-             for _ in range(workers)]
+    procs = [ctx.Process(target=target, args=(*args, barrier, results)) for _ in range(workers)]
     for proc in procs:
         proc.start()
     try:
-        runs = []
-        for _ in range(workers * windows):
-            runs.append(results.get(timeout=600))
-            if runs[-1][0] == "failed":  # the others stop too (their barrier is broken)
-                raise RuntimeError(f"{autopilot} worker: {runs[-1][1]}")
+        yield results
     finally:
         for proc in procs:
             proc.join(timeout=60)
             if proc.is_alive():
                 proc.kill()
                 proc.join()
+
+
+def _parallel_rtf(workers: int, size: Size, sim_s: float, windows: int = 1, autopilot: str = "direct",
+                  px4_bin: str | None = None) -> tuple[list[float], list[tuple[int, ...]]]:
+    """Aggregate real-time factor of `workers` worker processes, each flying an env, per timed
+    window; and the instances each worker flew (session backends)."""
+    with _together(_parallel_worker, (autopilot, px4_bin, windows, sim_s, size.warmup_s), workers) as results:
+        runs = []
+        for _ in range(workers * windows):
+            runs.append(results.get(timeout=600))
+            if runs[-1][0] == "failed":  # the others stop too (their barrier is broken)
+                raise RuntimeError(f"{autopilot} worker: {runs[-1][1]}")
     rtfs = []
     for window in range(windows):
         mine = [r for r in runs if r[0] == window]
@@ -297,18 +304,8 @@ def _bare_speedup(seconds: float) -> float:
     """Aggregate real-time factor of the bare pybullet loop in two processes at once over one:
     what this machine's cores give two CPU-bound processes with no Python work (virtual CPUs
     that share a physical core give well under 2)."""
-    ctx = mp.get_context("spawn")
-    barrier, results = ctx.Barrier(2), ctx.Queue()
-    procs = [ctx.Process(target=_bare_worker, args=(seconds, barrier, results)) for _ in range(2)]
-    for proc in procs:
-        proc.start()
-    try:
+    with _together(_bare_worker, (seconds,), 2) as results:
         two = results.get(timeout=600) + results.get(timeout=600)
-    finally:
-        for proc in procs:
-            proc.join(timeout=60)
-            if proc.is_alive():
-                proc.kill()
     return two / bare_pybullet_rtf(seconds)[0]
 
 
