@@ -279,14 +279,15 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
         holds = steps[:, r] <= reach[r]
         return float(holds[flew].mean()), float(holds[~flew].mean()) if (~flew).any() else 0.0
 
-    scores = {r: hit - false for r in reach for hit, false in [rates(r)]}
+    shares = {r: rates(r) for r in reach}
+    scores = {r: hit - false for r, (hit, false) in shares.items()}
     ray = max(scores, key=scores.__getitem__, default=None)
     if ray is None or scores[ray] <= 0.0:
         return None
     # Neighbouring rays that see the same obstacle score alike; those within one standard error
     # of the best (the 1-SE rule) are not told apart by the data, and the middle of that fan is
     # the least sensitive to where it points (a side ray sees past an opening's edge).
-    hit, false = rates(ray)
+    hit, false = shares[ray]
     standard_error = np.sqrt(hit * (1 - hit) / flew.sum() + false * (1 - false) / max((~flew).sum(), 1))
 
     def group(r: int) -> str:  # horizontal, above or below: a fan stays within one
