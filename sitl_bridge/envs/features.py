@@ -63,6 +63,8 @@ class Feature:
     compute: Callable[[DroneView], np.ndarray]
     labels: tuple[str, ...] = ()
     """Each element in words, where that helps a reader (lidar: each ray's direction)."""
+    groups: tuple[str, ...] = ()
+    """Each element's group, where the feature has groups (lidar: horizontal, up, down)."""
 
     @property
     def size(self) -> int:
@@ -231,7 +233,8 @@ def _lidar(options: Node, limits: ScenarioLimits) -> Feature:
     size = sum(limits.lidar_rays[g] for g in groups)
     return Feature("lidar", np.zeros(size), np.full(size, limits.lidar_range_m),
                    lambda v: np.concatenate([v.lidar[g] for g in groups]),
-                   tuple(label for g in groups for label in limits.lidar_labels.get(g, ())))
+                   tuple(label for g in groups for label in limits.lidar_labels.get(g, ())),
+                   tuple(g for g in groups for _ in range(limits.lidar_rays[g])))
 
 
 def _lidar_change(options: Node, limits: ScenarioLimits) -> Feature:

@@ -88,6 +88,8 @@ class ScenarioFacts:
     lidar_range_m: float = 5.0
     lidar_labels: tuple[str, ...] = ()
     """Each lidar ray's direction in words (`sensors.lidar.ray_labels`), in observation order."""
+    lidar_groups: tuple[str, ...] = ()
+    """Each lidar ray's group (horizontal, up, down), in observation order."""
 
 
 def scenario_facts(scenario, file: str | Path) -> ScenarioFacts:  # noqa: ANN001 - envs.scenario.Scenario
@@ -97,12 +99,13 @@ def scenario_facts(scenario, file: str | Path) -> ScenarioFacts:  # noqa: ANN001
         layout[feature.name] = slice(start, start + feature.size)
         start += feature.size
     static = [o for o in scenario.world.obstacles if not o.dynamic]
+    lidar = next((f for f in scenario.task.observation if f.name == "lidar"), None)
     return ScenarioFacts(
         file=Path(file).name, frame=scenario.task.action.frame, layout=layout, num_drones=scenario.num_drones,
         lone_obstacle=len(static) == 1 and static[0].shape.kind != "wall",
         opening=any(o.shape.opening is not None for o in static),
         lidar_range_m=scenario.limits.lidar_range_m,
-        lidar_labels=next((f.labels for f in scenario.task.observation if f.name == "lidar"), ()))
+        lidar_labels=lidar.labels if lidar else (), lidar_groups=lidar.groups if lidar else ())
 
 
 @dataclass
@@ -290,12 +293,9 @@ def _lidar_condition(after: After, code: int, facts: ScenarioFacts) -> tuple[lis
     hit, false = shares[ray]
     standard_error = np.sqrt(hit * (1 - hit) / flew.sum() + false * (1 - false) / max((~flew).sum(), 1))
 
-    def group(r: int) -> str:  # horizontal, above or below: a fan stays within one
-        label = facts.lidar_labels[r] if r < len(facts.lidar_labels) else ""
-        return label.split(",")[0] if label.startswith(("above", "below")) else "horizontal"
-
-    def alike(r: int) -> bool:
-        return r in scores and group(r) == group(ray) and scores[r] >= scores[ray] - standard_error
+    def alike(r: int) -> bool:  # a fan stays within one group of rays (horizontal, up, down)
+        return (r in scores and facts.lidar_groups[r:r + 1] == facts.lidar_groups[ray:ray + 1]
+                and scores[r] >= scores[ray] - standard_error)
 
     low = high = ray
     while alike(low - 1):
