@@ -20,7 +20,8 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
 * `parallel`: `direct` envs in 1 and 2 worker processes, aggregate real-time factor and the
   speed-up from 1 to 2 workers (about 2 on two idle cores); `bare_speedup_2_over_1`, the same
   for the bare pybullet loop (what the machine's cores give two CPU-bound processes), and
-  `fraction_of_bare_speedup`, the env's speed-up as a share of it.
+  `fraction_of_bare_speedup`, the env's speed-up as a share of it. Every worker runs for the
+  same `window_s` wall seconds, started together, `reps` windows after one start.
 * `px4_parallel`: the same with `px4` envs, each worker its own PX4 instance (each worker's env
   claims one in 0..9 through `autopilot.allocation`, never shared; `instances` says which), in env steps per
   wall second (`steps_per_s`): one PX4-backed env process against two at once, `reps` timed
@@ -48,8 +49,9 @@ from typing import Any
 
 import numpy as np
 
-from sitl_bridge.bench.physics import bare_pybullet_rtf
+from sitl_bridge.bench.physics import STEP_US, bare_pybullet_rtf, bare_world
 from sitl_bridge.data_paths import worlds_dir
+from sitl_bridge.physics.bullet import p
 
 SCENARIO = "obstacle.yaml"
 KEYS = ("physics", "direct", "direct_ground_truth", "batched", "stub", "px4", "reset_s",
@@ -68,15 +70,16 @@ class Size:
     num_envs: int
     resets: int
     train_episodes: int
-    parallel_sim_s: float
-    px4_parallel_sim_s: float
-    """Simulated seconds per timed window of `px4_parallel` (each of `reps` windows, per worker)."""
+    parallel_window_s: float
+    """Wall seconds of each of `parallel`'s `reps` timed windows (all workers run the whole window)."""
+    px4_parallel_window_s: float
+    """The same for `px4_parallel`."""
 
 
 SIZES = {
-    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 40, 100.0, 60.0),
-    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 12, 30.0, 20.0),
-    "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 2, 2.0, 2.0),  # for the test: seconds, figures meaningless
+    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 40, 5.0, 8.0),
+    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 12, 2.0, 4.0),
+    "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 2, 0.1, 0.5),  # for the test: seconds, figures meaningless
 }
 
 
@@ -227,12 +230,27 @@ def _train_case(size: Size, bare: float) -> dict[str, Any]:
     return entry
 
 
-def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, sim_s: float,
+def _fly_windows(step: Callable[[], float], windows: int, window_s: float, barrier, results,
+                 instances: tuple[int, ...] = ()) -> None:  # noqa: ANN001 - multiprocessing proxies
+    """Call `step` (which returns the simulated seconds it flew) for `windows` timed windows of
+    `window_s` wall seconds each, every window started together with the other workers'
+    (`barrier`). Puts (window, simulated s, wall start, wall end, instances) per window.
+
+    The windows are fixed in wall time, not in simulated time, so that all workers run for the
+    whole window: with a fixed simulated length the worker that finishes first leaves the other
+    running alone, and that tail counts as lost parallelism."""
+    for window in range(windows):
+        barrier.wait(timeout=600)
+        start, flown = time.perf_counter(), 0.0
+        while time.perf_counter() - start < window_s:
+            flown += step()
+        results.put((window, flown, start, time.perf_counter(), instances))
+
+
+def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, window_s: float,
                      warmup_s: float, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
-    """Fly one env in this worker process: warm up, then `windows` timed windows of `sim_s`
-    simulated seconds, each started together with the other workers' (`barrier`). Puts
-    (window, simulated s, wall start, wall end, instances flown) per window, or ("failed",
-    text) once."""
+    """Fly one env in this worker process: warm up, then `_fly_windows`; puts ("failed", text)
+    once if anything fails."""
     from sitl_bridge.envs import make_env
 
     env = None
@@ -244,18 +262,28 @@ def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, sim_s: f
         _fly(step, warmup_s)  # a PX4 boot and takeoff happen here, before any window
         session = getattr(env.backend, "session", None)  # session backends only (stub, px4)
         instances = tuple(session.instances) if session is not None else ()
-        for window in range(windows):
-            barrier.wait(timeout=600)
-            start, flown = time.perf_counter(), 0.0
-            while flown < sim_s:
-                flown += step()
-            results.put((window, flown, start, time.perf_counter(), instances))
+        _fly_windows(step, windows, window_s, barrier, results, instances)
     except Exception as exc:  # reported by the parent; the others must not wait for this one
         barrier.abort()
         results.put(("failed", f"{type(exc).__name__}: {exc}"))
     finally:
         if env is not None:
             env.close()
+
+
+def _bare_worker(windows: int, window_s: float, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
+    """The bare pybullet loop in this worker process, in `_fly_windows` (one simulated second a call)."""
+    with bare_world() as (cid, body):
+        steps = int(1e6 / STEP_US)
+
+        def step() -> float:
+            # back to the start height each simulated second: windows are long enough to land
+            p.resetBasePositionAndOrientation(body, (0.0, 0.0, 1e5), (0.0, 0.0, 0.0, 1.0), physicsClientId=cid)
+            for _ in range(steps):
+                p.stepSimulation(physicsClientId=cid)
+            return 1.0
+
+        _fly_windows(step, windows, window_s, barrier, results)
 
 
 @contextlib.contextmanager
@@ -278,46 +306,39 @@ def _together(target: Callable[..., None], args: tuple, workers: int) -> Iterato
                 proc.join()
 
 
-def _parallel_rtf(workers: int, size: Size, sim_s: float, windows: int = 1, autopilot: str = "direct",
-                  px4_bin: str | None = None) -> tuple[list[float], list[tuple[int, ...]]]:
-    """Aggregate real-time factor of `workers` worker processes, each flying an env, per timed
-    window; and the instances each worker flew (session backends)."""
-    with _together(_parallel_worker, (autopilot, px4_bin, windows, sim_s, size.warmup_s), workers) as results:
+def _windows_rtf(target: Callable[..., None], args: tuple, workers: int,
+                 windows: int) -> tuple[list[float], list[tuple[int, ...]]]:
+    """Aggregate real-time factor of `workers` processes running `target` (a `_fly_windows`
+    worker), per timed window: the sum of each worker's own simulated s per wall s; and the
+    instances each worker flew (session backends)."""
+    with _together(target, args, workers) as results:
         runs = []
         for _ in range(workers * windows):
             runs.append(results.get(timeout=600))
             if runs[-1][0] == "failed":  # the others stop too (their barrier is broken)
-                raise RuntimeError(f"{autopilot} worker: {runs[-1][1]}")
-    rtfs = []
-    for window in range(windows):
-        mine = [r for r in runs if r[0] == window]
-        rtfs.append(sum(r[1] for r in mine) / (max(r[3] for r in mine) - min(r[2] for r in mine)))
+                raise RuntimeError(f"worker: {runs[-1][1]}")
+    rtfs = [sum(r[1] / (r[3] - r[2]) for r in runs if r[0] == window) for window in range(windows)]
     return rtfs, [r[4] for r in runs if r[0] == 0]
 
 
-def _bare_worker(seconds: float, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
-    barrier.wait(timeout=600)
-    results.put(bare_pybullet_rtf(seconds)[0])
-
-
-def _bare_speedup(seconds: float) -> float:
-    """Aggregate real-time factor of the bare pybullet loop in two processes at once over one:
-    what this machine's cores give two CPU-bound processes with no Python work (virtual CPUs
-    that share a physical core give well under 2)."""
-    with _together(_bare_worker, (seconds,), 2) as results:
-        two = results.get(timeout=600) + results.get(timeout=600)
-    return two / bare_pybullet_rtf(seconds)[0]
+def _parallel_rtf(workers: int, size: Size, window_s: float, autopilot: str = "direct",
+                  px4_bin: str | None = None) -> tuple[list[float], list[tuple[int, ...]]]:
+    """`_windows_rtf` of `workers` env worker processes, `size.reps` windows after one start each."""
+    return _windows_rtf(_parallel_worker, (autopilot, px4_bin, size.reps, window_s, size.warmup_s),
+                        workers, size.reps)
 
 
 def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
-    reps = max(1, size.reps - 1)
-    one = [_parallel_rtf(1, size, size.parallel_sim_s)[0][0] for _ in range(reps)]
-    two = [_parallel_rtf(2, size, size.parallel_sim_s)[0][0] for _ in range(reps)]
+    one, two = (_parallel_rtf(workers, size, size.parallel_window_s)[0] for workers in (1, 2))
     speedup = statistics.median(two) / statistics.median(one)
-    bare_speedup = statistics.median(_bare_speedup(size.bare_s) for _ in range(reps))
+    bare_one, bare_two = (_windows_rtf(_bare_worker, (size.reps, size.parallel_window_s), workers, size.reps)[0]
+                          for workers in (1, 2))
+    bare_speedup = statistics.median(bare_two) / statistics.median(bare_one)
     return {"workers_1": _rtf_entry(one, bare), "workers_2": _rtf_entry(two, bare),
-            "speedup_2_over_1": speedup, "bare_speedup_2_over_1": bare_speedup,
-            "fraction_of_bare_speedup": speedup / bare_speedup, "cpu_count": os.cpu_count()}
+            "speedup_2_over_1": speedup, "bare_workers_1": _spread(bare_one), "bare_workers_2": _spread(bare_two),
+            "bare_speedup_2_over_1": bare_speedup,
+            "fraction_of_bare_speedup": speedup / bare_speedup, "window_s": size.parallel_window_s,
+            "cpu_count": os.cpu_count()}
 
 
 def _px4_parallel_case(size: Size, bare: float, px4_bin: str) -> dict[str, Any]:
@@ -328,13 +349,13 @@ def _px4_parallel_case(size: Size, bare: float, px4_bin: str) -> dict[str, Any]:
     for workers in (1, 2):
         # Nothing handed out: each worker's env claims its own free PX4 instance in 0..9 and
         # holds it to the end (`autopilot.allocation`); the workers report which.
-        rtfs, instances = _parallel_rtf(workers, size, size.px4_parallel_sim_s, windows=size.reps,
-                                        autopilot="px4", px4_bin=px4_bin)
+        rtfs, instances = _parallel_rtf(workers, size, size.px4_parallel_window_s, autopilot="px4", px4_bin=px4_bin)
         steps = [rtf / step_s for rtf in rtfs]
         entries[f"workers_{workers}"] = _rtf_entry(rtfs, bare, steps_per_s=_spread(steps),
                                                    instances=[list(i) for i in instances])
     speedup = entries["workers_2"]["rtf"]["median"] / entries["workers_1"]["rtf"]["median"]
-    return {**entries, "speedup_2_over_1": speedup, "step_s": step_s, "cpu_count": os.cpu_count()}
+    return {**entries, "speedup_2_over_1": speedup, "step_s": step_s, "window_s": size.px4_parallel_window_s,
+            "cpu_count": os.cpu_count()}
 
 
 def _step_s() -> float:
