@@ -77,8 +77,8 @@ class Size:
 
 
 SIZES = {
-    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 40, 5.0, 8.0),
-    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 12, 2.0, 4.0),
+    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 40, 5.0, 15.0),
+    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 12, 2.0, 6.0),
     "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 2, 0.1, 0.5),  # for the test: seconds, figures meaningless
 }
 
@@ -136,10 +136,10 @@ def _cpu_ms_per_step(before: tuple[float, float | None], after: tuple[float, flo
     return {"this_process": own, "children": children, "total": own + children}
 
 
-def _random_stepper(env: Any) -> Callable[[], float]:
+def _random_stepper(env: Any, seed: int = 0) -> Callable[[], float]:
     """One random action per call (resets included: training pays for them too); returns the
     simulated seconds it flew."""
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     step_s = env.scenario.task.action.step_s
 
     def step() -> float:
@@ -248,17 +248,18 @@ def _fly_windows(step: Callable[[], float], windows: int, window_s: float, barri
 
 
 def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, window_s: float,
-                     warmup_s: float, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
-    """Fly one env in this worker process: warm up, then `_fly_windows`; puts ("failed", text)
-    once if anything fails."""
+                     warmup_s: float, index: int, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
+    """Fly one env in this worker process (seeded with the worker's `index`, so worker 0 flies
+    the same episodes whether alone or with others): warm up, then `_fly_windows`; puts
+    ("failed", text) once if anything fails."""
     from sitl_bridge.envs import make_env
 
     env = None
     try:
         # session backends claim their own instances (autopilot.allocation): nothing handed in
-        env = make_env(_scenario(), autopilot=autopilot, speed_factor=0.0, seed=os.getpid(), px4_bin=px4_bin)
-        step = _random_stepper(env)
-        env.reset()
+        env = make_env(_scenario(), autopilot=autopilot, speed_factor=0.0, seed=index, px4_bin=px4_bin)
+        step = _random_stepper(env, seed=index)
+        env.reset(seed=index)
         _fly(step, warmup_s)  # a PX4 boot and takeoff happen here, before any window
         session = getattr(env.backend, "session", None)  # session backends only (stub, px4)
         instances = tuple(session.instances) if session is not None else ()
@@ -271,7 +272,7 @@ def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, window_s
             env.close()
 
 
-def _bare_worker(windows: int, window_s: float, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
+def _bare_worker(windows: int, window_s: float, index: int, barrier, results) -> None:  # noqa: ANN001, ARG001
     """The bare pybullet loop in this worker process, in `_fly_windows` (one simulated second a call)."""
     with bare_world() as (cid, body):
         steps = int(1e6 / STEP_US)
@@ -289,11 +290,11 @@ def _bare_worker(windows: int, window_s: float, barrier, results) -> None:  # no
 @contextlib.contextmanager
 def _together(target: Callable[..., None], args: tuple, workers: int) -> Iterator[Any]:
     """`workers` fresh processes (spawned: no pybullet state copied by fork) each running
-    `target(*args, barrier, results)`; yields the results queue; on exit each is joined, or
-    killed when it does not end."""
+    `target(*args, index, barrier, results)` with its index 0, 1, ...; yields the results queue;
+    on exit each is joined, or killed when it does not end."""
     ctx = mp.get_context("spawn")
     barrier, results = ctx.Barrier(workers), ctx.Queue()
-    procs = [ctx.Process(target=target, args=(*args, barrier, results)) for _ in range(workers)]
+    procs = [ctx.Process(target=target, args=(*args, index, barrier, results)) for index in range(workers)]
     for proc in procs:
         proc.start()
     try:
