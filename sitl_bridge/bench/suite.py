@@ -13,7 +13,10 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   every single-env case also gives `steps_per_s` (env steps per wall second, resets included).
 * `batched`: `make_vec_env(num_envs=N)` of the same scenario, aggregate over the N copies.
 * `stub`: one env on the full protocol path (HIL TCP + stub + MAVLink UDP + MAVSDK), speed 0.
-* `px4`: the same with real PX4 when `PX4_BIN` is set, else `{"skipped": reason}`.
+* `px4`: the same with real PX4 when `PX4_BIN` is set, else `{"skipped": reason}`;
+  `episode_starts`: of the episodes that ended in the timed repetitions, how many the next
+  started in the air and how many by a PX4 restart (random actions crash often; a restart
+  costs ~2 s, so the figure depends on how many fell into the timed repetitions).
 * `reset_s`: wall seconds per `reset()` for each backend measured (median, min, max).
 * `train_steps_per_s`: DQN training env steps per wall second, updates included (thesis O
   settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
@@ -136,19 +139,29 @@ def _cpu_ms_per_step(before: tuple[float, float | None], after: tuple[float, flo
     return {"this_process": own, "children": children, "total": own + children}
 
 
-def _random_stepper(env: Any, seed: int = 0) -> Callable[[], float]:
+class _RandomFlight:
     """One random action per call (resets included: training pays for them too); returns the
-    simulated seconds it flew."""
-    rng = np.random.default_rng(seed)
-    step_s = env.scenario.task.action.step_s
+    simulated seconds it flew. Counts the episodes it ended (`episodes_ended`)."""
 
-    def step() -> float:
-        _, _, terminated, truncated, _ = env.step(int(rng.integers(8)))
+    def __init__(self, env: Any, seed: int = 0) -> None:
+        self.env = env
+        self.rng = np.random.default_rng(seed)
+        self.step_s = env.scenario.task.action.step_s
+        self.episodes_ended = 0
+
+    def __call__(self) -> float:
+        _, _, terminated, truncated, _ = self.env.step(int(self.rng.integers(8)))
         if terminated or truncated:
-            env.reset()
-        return step_s
+            self.episodes_ended += 1
+            self.env.reset()
+        return self.step_s
 
-    return step
+
+def _episode_starts(flight: _RandomFlight, in_air_before: int) -> dict[str, int]:
+    """How the episodes `flight` ended were followed: in the air (px4: PX4 flew on) or by an
+    autopilot restart (a crash, a tumble or a failsafe: seconds each)."""
+    in_air = getattr(flight.env.unwrapped.backend, "in_air_resets", 0) - in_air_before
+    return {"episodes_ended": flight.episodes_ended, "in_air": in_air, "restarts": flight.episodes_ended - in_air}
 
 
 def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
@@ -160,13 +173,15 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
     # session backends claim a free instance from here up (px4: in 0..9)
     env = make_env(_scenario(), autopilot=backend, speed_factor=0.0, seed=0, instance_base=BENCH_INSTANCE_BASE,
                    estimator=estimator, px4_bin=px4_bin)
-    step = _random_stepper(env)
+    step = _RandomFlight(env)
     try:
         env.reset(seed=0)
         _fly(step, size.warmup_s)
-        before = _cpu_s()
+        before, ended, in_air = _cpu_s(), step.episodes_ended, getattr(env.unwrapped.backend, "in_air_resets", 0)
         rtfs = [_fly(step, size.sim_s) for _ in range(size.reps)]
         cpu = _cpu_ms_per_step(before, _cpu_s(), size.reps * size.sim_s / _step_s())
+        step.episodes_ended -= ended
+        starts = _episode_starts(step, in_air)
         resets = []
         for _ in range(size.resets):
             t0 = time.perf_counter()
@@ -175,6 +190,8 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
     finally:
         env.close()
     extra = {"cpu_ms_per_step": cpu} if backend != "direct" and cpu is not None else {}
+    if backend == "px4":
+        extra["episode_starts"] = starts
     return _rtf_entry(rtfs, bare, backend=backend, estimator=estimator,
                       steps_per_s=_spread([rtf / _step_s() for rtf in rtfs]), **extra), resets
 
@@ -258,7 +275,7 @@ def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, window_s
     try:
         # session backends claim their own instances (autopilot.allocation): nothing handed in
         env = make_env(_scenario(), autopilot=autopilot, speed_factor=0.0, seed=index, px4_bin=px4_bin)
-        step = _random_stepper(env, seed=index)
+        step = _RandomFlight(env, seed=index)
         env.reset(seed=index)
         _fly(step, warmup_s)  # a PX4 boot and takeoff happen here, before any window
         session = getattr(env.backend, "session", None)  # session backends only (stub, px4)
@@ -451,6 +468,10 @@ def _summary(figures: dict[str, Any]) -> str:
         cpu = figures["cpu_ms_per_step"]
         text += (f"; CPU per env step {cpu['total']:.0f} ms ({cpu['this_process']:.0f} here, "
                  f"{cpu['children']:.0f} in child processes)")
+    if "episode_starts" in figures:
+        starts = figures["episode_starts"]
+        text += (f"; {starts['episodes_ended']} episodes ended: {starts['in_air']} next started in the air, "
+                 f"{starts['restarts']} by a restart")
     return text
 
 
