@@ -67,3 +67,20 @@ def test_px4_parallel_case_flies_two_px4_instances_at_once(px4_bin: str) -> None
         assert 0 < entry["steps_per_s"]["min"] <= entry["steps_per_s"]["median"] <= entry["steps_per_s"]["max"]
         assert entry["rtf"]["median"] == pytest.approx(entry["steps_per_s"]["median"] * result["step_s"])
     assert result["speedup_2_over_1"] == two["rtf"]["median"] / one["rtf"]["median"]
+
+
+def test_parallel_windows_run_every_worker_for_the_whole_window_together() -> None:
+    """The parallel cases' timing: every worker runs each window for its full wall length,
+    all released together, so no worker's tail runs alone (what made 2 workers look slower)."""
+    from sitl_bridge.bench.suite import _bare_worker, _together
+
+    window_s = 1.0
+    with _together(_bare_worker, (2, window_s), 2) as results:
+        runs = [results.get(timeout=120) for _ in range(4)]
+    for window in (0, 1):
+        mine = [r for r in runs if r[0] == window]
+        assert len(mine) == 2
+        starts, ends = [r[2] for r in mine], [r[3] for r in mine]
+        assert all(end - start >= window_s for start, end in zip(starts, ends, strict=True))
+        assert max(starts) - min(starts) < window_s / 2  # overlapping for most of the window
+        assert all(r[1] > 0 for r in mine)  # each flew simulated time
