@@ -180,6 +180,35 @@ def observations(analysis: BehaviourAnalysis, traces_by_run: dict[str, list[Trac
     return out
 
 
+def aside_then_yield(episode: int) -> list[Trace]:
+    """Drone 0 (lower priority) steps 1 m left, hovers 4 s while drone 1 comes down the line it
+    left, then goes; drone 1 passes it 1 m to its right."""
+    waiting = [(0, 0), (-1, 0), (-1, 0), (-1, 0), (-1, 0), (-1, 0)] + line(-1, [1, 2, 3, 4, 5, 6])
+    passing = line(0, [7, 6, 5, 4, 3, 2, 1, 0, -1])
+    return [trace(waiting, (0, 6), [1, 7, 7, 7, 7, 3, 3, 3, 3, 3, 3], drone=0, episode=episode),
+            trace(passing, (0, -1), [3] * 8, drone=1, episode=episode)]
+
+
+def test_a_yield_rule_covers_the_whole_approach_until_the_other_is_about_to_pass() -> None:
+    """The networks' yielder hovered from 6 m (after stepping aside) and went on at 2 m: the rule
+    hovers while the other is more than 2 m and at most 7 m (where it started) ahead. Starting at
+    6 m, as the trigger alone says, a rule drone would first fly toward the other."""
+    scenario_file = WORLDS / "two_drones_empty_relative.yaml"
+    facts = scenario_facts(load_scenario(scenario_file), scenario_file)
+    traces_by_run = {str(seed): [t for e in range(2) for t in aside_then_yield(e)] for seed in range(3)}
+    runs = [RunBehaviour(label, classify(traces, run=label)) for label, traces in traces_by_run.items()]
+    analysis = BehaviourAnalysis("two_drones_empty_relative", runs)
+    assert {d.manoeuvre for e in analysis.episodes for d in e.drones if d.drone == 0} == {"yield_hover"}
+    rules = {r.manoeuvre: r for r in candidate_rules(analysis, facts, observations(analysis, traces_by_run,
+                                                                                        facts.layout))}
+    hover = rules["yield_hover"]
+    assert hover.in_yaml and hover.action == 7
+    assert {"feature": "travel_others[1]", "op": ">", "value": 2.0} in hover.when
+    assert {"feature": "travel_others[1]", "op": "<=", "value": 7.0} in hover.when
+    assert hover.when[0] == {"feature": "own_priority", "op": "<", "value": 0.5}
+    assert hover.text.startswith("another drone ahead, more than 2 and at most 7 m")
+
+
 def test_candidate_rules_support_and_yaml_round_trip(tmp_path: Path) -> None:
     scenario_file = WORLDS / "two_drones_empty_relative.yaml"
     facts = scenario_facts(load_scenario(scenario_file), scenario_file)

@@ -26,14 +26,14 @@ import yaml
 from sitl_bridge.rl.actions_named import action_code, action_name
 from sitl_bridge.rl.behaviour import BehaviourAnalysis, EpisodeBehaviour, split_text
 
-ANALYSIS_VERSION = 6
+ANALYSIS_VERSION = 7
 """Bumped when the classification, the rule extraction or the rules' verification changes what
 they report, so the report's cached behaviour and rules are made again (2: passing order, rule 5
 by it, the end of a climb or dive under another drone; 3: traffic rule sets flown in the
 one-drone scenarios before them, their rules on the other drone left out; 4: climbs to a wall's
 opening, `to_opening`, a rule of their own; a lidar condition on the ray that tells the
 manoeuvre's steps apart; 5: of the rays alike within one standard error, the middle one; 6: of
-two middles, the better)."""
+two middles, the better; 7: a yield over the other's whole approach, until it is about to pass)."""
 SEED_SUPPORT_SHARE = 0.5
 """A manoeuvre holds in a seed when it shows in at least this share of its successful episodes."""
 YAML_MIN_SEED_SHARE = 0.5
@@ -168,9 +168,11 @@ After = list[tuple[str, np.ndarray, list[int]]]
 """(run, observations, actions) from the first step of a manoeuvre on, per drone-episode."""
 
 
-def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations) -> After:
+def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Observations,
+                  *, from_start: bool = False) -> After:
     """(run, observations and actions from the first step of `manoeuvre` on) of every successful
-    drone-episode that shows it and has its observations recorded."""
+    drone-episode that shows it and has its observations recorded; with `from_start`, from the
+    episode's first step instead."""
     found = []
     for episode in analysis.episodes:
         if not episode.success:
@@ -179,8 +181,8 @@ def _from_trigger(analysis: BehaviourAnalysis, manoeuvre: str, observations: Obs
             obs = observations.get((episode.run, episode.episode, d.drone))
             if d.manoeuvre == manoeuvre and d.trigger_step is not None and obs is not None \
                     and d.trigger_step < len(obs):
-                found.append((episode.run, np.asarray(obs[d.trigger_step:], dtype=float),
-                              d.actions[d.trigger_step:]))
+                first = 0 if from_start else d.trigger_step
+                found.append((episode.run, np.asarray(obs[first:], dtype=float), d.actions[first:]))
     return found
 
 
@@ -216,19 +218,45 @@ def _priority_convention(rows: np.ndarray, runs: list[str], facts: ScenarioFacts
     return rows[keep], [runs[k] for k in keep], convention, note
 
 
-def _drone_condition(rows: np.ndarray, facts: ScenarioFacts, manoeuvre: str) -> tuple[list[dict], str] | None:
-    """Another drone ahead (travel frame) within the largest distance seen at the triggers."""
+def _yield_span(after: After, starts: After, base: int) -> tuple[float, float] | None:
+    """For a yield, "until it has passed", as far as the other drone ahead (travel frame) says:
+    (the distance below which the networks stopped yielding, the median over the drone-episodes
+    of the other's distance ahead at the first step after the trigger that flew another action
+    than the trigger's, rounded down; the largest distance ahead at the episodes' starts,
+    rounded up). A rule without memory cannot tell "before my yield began" from "during it", so
+    it yields over the other's whole approach: starting it only where the networks' yields began
+    (after stepping aside or waiting low) lets the rule's drone fly into the conflict first.
+    None when no yield ended with the other still ahead or the other was not ahead at a start."""
+    ends = []
+    for _, rows, actions in after:
+        end = next((k for k in range(1, len(actions)) if actions[k] != actions[0]), None)
+        if end is not None and end < len(rows):
+            ends.append(float(rows[end, base + 1]))
+    first = np.array([rows[0, base + 1] for _, rows, _ in starts])
+    if not ends or not len(first) or float(first.min()) <= 0.0:
+        return None
+    passed = math.floor(max(0.0, float(np.median(ends))) / THRESHOLD_STEP + 1e-9) * THRESHOLD_STEP
+    return round(passed, 6), _up(float(first.max()))
+
+
+def _drone_condition(rows: np.ndarray, facts: ScenarioFacts, manoeuvre: str,
+                     span: tuple[float, float] | None = None) -> tuple[list[dict], str] | None:
+    """Another drone ahead (travel frame) within the largest distance seen at the triggers, or,
+    for a yield with its `span` (`_yield_span`), ahead by more than where the networks stopped
+    yielding and at most as far as at the episodes' starts."""
     if "travel_others" not in facts.layout:
         return None
     base = facts.layout["travel_others"].start
     ahead, side = rows[:, base + 1], rows[:, base]
     if float(ahead.min()) <= 0.0:
         return None  # the other was not always ahead when it started: not this situation
-    reach, width = _up(float(ahead.max())), _up(float(np.abs(side).max()) + LATERAL_MARGIN_M)
+    near, reach = span if span is not None else (0.0, _up(float(ahead.max())))
+    width = _up(float(np.abs(side).max()) + LATERAL_MARGIN_M)
     forward, sideways = _feature(facts.layout, "travel_others", 1), _feature(facts.layout, "travel_others", 0)
-    when = [{"feature": forward, "op": ">", "value": 0.0}, {"feature": forward, "op": "<=", "value": reach},
+    when = [{"feature": forward, "op": ">", "value": near}, {"feature": forward, "op": "<=", "value": reach},
             {"feature": sideways, "op": ">=", "value": -width}, {"feature": sideways, "op": "<=", "value": width}]
-    situation = f"another drone ahead within {reach:g} m (within {width:g} m sideways)"
+    situation = (f"another drone ahead, more than {near:g} and at most {reach:g} m (within {width:g} m sideways)"
+                 if near > 0.0 else f"another drone ahead within {reach:g} m (within {width:g} m sideways)")
     if manoeuvre in OTHER_DRONE and "own_priority" in facts.layout:
         priority = rows[:, facts.layout["own_priority"].start]
         if float(priority.max()) < 0.5:
@@ -344,7 +372,11 @@ def _candidate(analysis: BehaviourAnalysis, manoeuvre: str, facts: ScenarioFacts
             rule.note = convention_note
     condition = None
     if len(rows):
-        condition = (_drone_condition(rows, facts, manoeuvre) if about_drone
+        span = None
+        if manoeuvre in OTHER_DRONE and "travel_others" in facts.layout:
+            span = _yield_span(after, _from_trigger(analysis, manoeuvre, observations, from_start=True),
+                               facts.layout["travel_others"].start)
+        condition = (_drone_condition(rows, facts, manoeuvre, span) if about_drone
                      else _lidar_condition(after, code, facts))
         if condition is not None and convention is not None:
             when, situation = condition
