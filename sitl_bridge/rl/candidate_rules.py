@@ -250,7 +250,8 @@ def _drone_condition(rows: np.ndarray, facts: ScenarioFacts, manoeuvre: str,
     ahead, side = rows[:, base + 1], rows[:, base]
     if float(ahead.min()) <= 0.0:
         return None  # the other was not always ahead when it started: not this situation
-    near, reach = span if span is not None else (0.0, _up(float(ahead.max())))
+    near, reach = span if span is not None else (0.0, 0.0)
+    reach = max(reach, _up(float(ahead.max())))  # every trigger inside it, whatever the starts said
     width = _up(float(np.abs(side).max()) + LATERAL_MARGIN_M)
     forward, sideways = _feature(facts.layout, "travel_others", 1), _feature(facts.layout, "travel_others", 0)
     when = [{"feature": forward, "op": ">", "value": near}, {"feature": forward, "op": "<=", "value": reach},
