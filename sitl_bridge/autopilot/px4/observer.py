@@ -65,7 +65,10 @@ class GcsObserver:
     HEARTBEAT / SYS_STATUS / HOME_POSITION in; reads back parameters that must hold a value
     and sets them (PARAM_SET, PX4's bytewise int encoding) when they differ."""
 
-    RESEND_S = 0.5
+    RESEND_S = 0.1
+    """Wall seconds between heartbeats and parameter requests. PX4 streams to this port only
+    after a heartbeat, and each parameter check is a request and a reply, so a PX4 (re)start
+    waits for these sends: every 0.5 s a restart took 1.7-1.8 s, every 0.1 s 1.3-1.4 s."""
 
     def __init__(self, instance: int, host: str, enforce: Mapping[str, float | int]) -> None:
         self.target = (host, GCS_BASE_PORT + instance)
