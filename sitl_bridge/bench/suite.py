@@ -16,7 +16,7 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
 * `px4`: the same with real PX4 when `PX4_BIN` is set, else `{"skipped": reason}`;
   `episode_starts`: of the episodes that ended in the timed repetitions, how many the next
   started in the air and how many by a PX4 restart (random actions crash often; a restart
-  costs ~2 s, so the figure depends on how many fell into the timed repetitions).
+  costs ~1.2 s, so the figure depends on how many fell into the timed repetitions).
 * `reset_s`: wall seconds per `reset()` for each backend measured (median, min, max).
 * `train_steps_per_s`: DQN training env steps per wall second, updates included (thesis O
   settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
@@ -159,7 +159,7 @@ class _RandomFlight:
 
 def _episode_starts(flight: _RandomFlight, in_air_before: int) -> dict[str, int]:
     """How the episodes `flight` ended were followed: in the air (px4: PX4 flew on) or by an
-    autopilot restart (a crash, a tumble or a failsafe: seconds each)."""
+    autopilot restart (a crash, a tumble or a failsafe: about a second each)."""
     in_air = getattr(flight.env.unwrapped.backend, "in_air_resets", 0) - in_air_before
     return {"episodes_ended": flight.episodes_ended, "in_air": in_air, "restarts": flight.episodes_ended - in_air}
 
