@@ -157,11 +157,17 @@ class _RandomFlight:
         return self.step_s
 
 
-def _episode_starts(flight: _RandomFlight, in_air_before: int) -> dict[str, int]:
-    """How the episodes `flight` ended were followed: in the air (px4: PX4 flew on) or by an
-    autopilot restart (a crash, a tumble or a failsafe: about a second each)."""
-    in_air = getattr(flight.env.unwrapped.backend, "in_air_resets", 0) - in_air_before
-    return {"episodes_ended": flight.episodes_ended, "in_air": in_air, "restarts": flight.episodes_ended - in_air}
+def _ended_and_in_air(flight: _RandomFlight) -> tuple[int, int]:
+    """Episodes `flight` ended so far, and the next episodes its backend started in the air."""
+    return flight.episodes_ended, getattr(flight.env.unwrapped.backend, "in_air_resets", 0)
+
+
+def _episode_starts(before: tuple[int, int], after: tuple[int, int]) -> dict[str, int]:
+    """How the episodes ended between two `_ended_and_in_air` counts were followed: in the air
+    (px4: PX4 flew on) or by an autopilot restart (a crash, a tumble or a failsafe: about a
+    second each)."""
+    ended, in_air = after[0] - before[0], after[1] - before[1]
+    return {"episodes_ended": ended, "in_air": in_air, "restarts": ended - in_air}
 
 
 def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
@@ -177,11 +183,10 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
     try:
         env.reset(seed=0)
         _fly(step, size.warmup_s)
-        before, ended, in_air = _cpu_s(), step.episodes_ended, getattr(env.unwrapped.backend, "in_air_resets", 0)
+        before, counts = _cpu_s(), _ended_and_in_air(step)
         rtfs = [_fly(step, size.sim_s) for _ in range(size.reps)]
         cpu = _cpu_ms_per_step(before, _cpu_s(), size.reps * size.sim_s / _step_s())
-        step.episodes_ended -= ended
-        starts = _episode_starts(step, in_air)
+        starts = _episode_starts(counts, _ended_and_in_air(step))
         resets = []
         for _ in range(size.resets):
             t0 = time.perf_counter()

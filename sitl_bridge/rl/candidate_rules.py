@@ -159,6 +159,10 @@ def _up(value: float) -> float:
     return round(math.ceil(value / THRESHOLD_STEP - 1e-9) * THRESHOLD_STEP, 6)
 
 
+def _down(value: float) -> float:
+    return round(math.floor(value / THRESHOLD_STEP + 1e-9) * THRESHOLD_STEP, 6)
+
+
 def _feature(layout: Mapping[str, slice], name: str, index: int) -> str:
     block = layout[name]
     return name if block.stop - block.start == 1 else f"{name}[{index}]"
@@ -235,8 +239,7 @@ def _yield_span(after: After, starts: After, base: int) -> tuple[float, float] |
     first = np.array([rows[0, base + 1] for _, rows, _ in starts])
     if not ends or not len(first) or float(first.min()) <= 0.0:
         return None
-    passed = math.floor(max(0.0, float(np.median(ends))) / THRESHOLD_STEP + 1e-9) * THRESHOLD_STEP
-    return round(passed, 6), _up(float(first.max()))
+    return _down(max(0.0, float(np.median(ends)))), _up(float(first.max()))
 
 
 def _drone_condition(rows: np.ndarray, facts: ScenarioFacts, manoeuvre: str,
@@ -280,7 +283,7 @@ def _vertical_stop(after: After, manoeuvre: str, facts: ScenarioFacts, runs: set
         rows = rows[rows[:, ahead] > 0.0]
         if run in runs and len(rows):
             gaps.append(float((sign * rows[:, up]).max()))
-    gap = math.floor(float(np.median(gaps)) / THRESHOLD_STEP + 1e-9) * THRESHOLD_STEP if gaps else 0.0
+    gap = _down(float(np.median(gaps))) if gaps else 0.0
     if gap <= 0.0:
         return None
     feature = _feature(facts.layout, "travel_others", 2)
