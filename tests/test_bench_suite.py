@@ -4,8 +4,11 @@ the bench's business, never a unit test's)."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -21,7 +24,7 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     result = json.loads(out.read_text())
     for key in KEYS:
         assert key in result, key
-    assert result["px4"] == result["px4_parallel"] == {"skipped": "PX4_BIN not set"}
+    assert result["px4"] == result["px4_standby"] == result["px4_parallel"] == {"skipped": "PX4_BIN not set"}
     bare = result["physics"]["rtf"]["median"]
     assert bare > 0 and result["physics"]["fraction_of_bare"]["median"] == 1.0
     for key in ("direct", "direct_ground_truth", "batched", "stub", "train_steps_per_s"):
@@ -51,6 +54,25 @@ def test_px4_ceiling_is_the_cores_over_what_one_env_keeps_busy(monkeypatch) -> N
     result["px4"]["cpu_ms_per_step"]["total"] = 20.0                             # 0.3 cores: 2x at most
     suite._px4_ceiling(result)
     assert result["px4_parallel"]["cpu_bound_speedup"] == 2.0
+
+
+def test_cpu_time_counts_live_grandchildren() -> None:
+    """With `standby=True` PX4 runs under the backend's worker processes: the CPU per env step
+    must count their children too, while they are still running."""
+    from sitl_bridge.bench.suite import _cpu_s
+
+    burn = "import time; t = time.process_time(); exec('while time.process_time() - t < 0.5: pass'); time.sleep(30)"
+    spawn = f"import subprocess, sys; subprocess.run([sys.executable, '-c', {burn!r}])"
+    before = _cpu_s()
+    child = subprocess.Popen([sys.executable, "-c", spawn], start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while _cpu_s()[1] - before[1] < 0.5 and time.monotonic() < deadline:  # type: ignore[operator]
+            time.sleep(0.1)
+        assert _cpu_s()[1] - before[1] >= 0.5  # type: ignore[operator]
+    finally:
+        os.killpg(child.pid, signal.SIGKILL)  # the child and the grandchild, its own process group
+        child.wait()
 
 
 def test_px4_parallel_case_flies_two_px4_instances_at_once(px4_bin: str) -> None:

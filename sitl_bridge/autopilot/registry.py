@@ -79,6 +79,11 @@ class AutopilotKind:
             return self.ground_truth
         return bool(self.fleet_class().supports_ground_truth)
 
+    @property
+    def resets_in_air(self) -> bool:
+        """Its autopilots may fly on from one episode into the next (`AutopilotFleet.resets_in_air`)."""
+        return self.fleet is not None and bool(self.fleet_class().resets_in_air)
+
 
 _KINDS: dict[str, AutopilotKind] = {}
 

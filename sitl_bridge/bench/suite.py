@@ -57,7 +57,7 @@ from sitl_bridge.data_paths import worlds_dir
 from sitl_bridge.physics.bullet import p
 
 SCENARIO = "obstacle.yaml"
-KEYS = ("physics", "direct", "direct_ground_truth", "batched", "stub", "px4", "reset_s",
+KEYS = ("physics", "direct", "direct_ground_truth", "batched", "stub", "px4", "px4_standby", "reset_s",
         "train_steps_per_s", "parallel", "px4_parallel")
 
 
@@ -112,22 +112,30 @@ def _fly(step: Callable[[], float], sim_s: float) -> float:
 
 
 def _cpu_s() -> tuple[float, float | None]:
-    """CPU seconds used so far by this process (all threads) and by its child processes, live
-    or ended (Linux /proc; None elsewhere): PX4 runs in children, the simulator and MAVSDK here."""
+    """CPU seconds used so far by this process (all threads) and by its descendants, live or
+    ended (Linux /proc; None elsewhere): PX4 runs in children (with `standby`, grandchildren
+    under the backend's worker processes), the simulator and MAVSDK here or in those workers."""
     own = time.process_time()
     times = os.times()
     ended = times.children_user + times.children_system
     try:
-        me = str(os.getpid())
         tick = os.sysconf("SC_CLK_TCK")
-        live = 0.0
+        children: dict[int, list[int]] = {}
+        used: dict[int, float] = {}
         for stat in Path("/proc").glob("[0-9]*/stat"):
             with contextlib.suppress(OSError, IndexError, ValueError):
                 fields = stat.read_text().rsplit(")", 1)[1].split()
-                if fields[1] == me:  # ppid; utime, stime: fields 11, 12 after the name
-                    live += (int(fields[11]) + int(fields[12])) / tick
+                # after the name: ppid 1; utime, stime 11, 12; reaped children's cutime, cstime 13, 14
+                pid = int(stat.parent.name)
+                children.setdefault(int(fields[1]), []).append(pid)
+                used[pid] = sum(int(f) for f in fields[11:15]) / tick
     except (OSError, ValueError):
         return own, None
+    live, stack = 0.0, list(children.get(os.getpid(), ()))
+    while stack:
+        pid = stack.pop()
+        live += used.get(pid, 0.0)
+        stack.extend(children.get(pid, ()))
     return own, ended + live
 
 
@@ -157,28 +165,30 @@ class _RandomFlight:
         return self.step_s
 
 
-def _ended_and_in_air(flight: _RandomFlight) -> tuple[int, int]:
-    """Episodes `flight` ended so far, and the next episodes its backend started in the air."""
-    return flight.episodes_ended, getattr(flight.env.unwrapped.backend, "in_air_resets", 0)
+def _ended_and_in_air(flight: _RandomFlight) -> tuple[int, int, int]:
+    """Episodes `flight` ended so far, the next episodes its backend started in the air, and
+    of those the ones a standby took over (`standby=True`)."""
+    backend = flight.env.unwrapped.backend
+    return flight.episodes_ended, getattr(backend, "in_air_resets", 0), getattr(backend, "handovers", 0)
 
 
-def _episode_starts(before: tuple[int, int], after: tuple[int, int]) -> dict[str, int]:
+def _episode_starts(before: tuple[int, int, int], after: tuple[int, int, int]) -> dict[str, int]:
     """How the episodes ended between two `_ended_and_in_air` counts were followed: in the air
-    (px4: PX4 flew on) or by an autopilot restart (a crash, a tumble or a failsafe: about a
-    second each)."""
-    ended, in_air = after[0] - before[0], after[1] - before[1]
-    return {"episodes_ended": ended, "in_air": in_air, "restarts": ended - in_air}
+    (px4: PX4 flew on, or a standby PX4 took over) or by an autopilot restart in the foreground
+    (a crash, a tumble or a failsafe: about a second each)."""
+    ended, in_air, handovers = (a - b for a, b in zip(after, before, strict=True))
+    return {"episodes_ended": ended, "in_air": in_air, "handovers": handovers, "restarts": ended - in_air}
 
 
 def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
-              px4_bin: str | None = None) -> tuple[dict[str, Any], list[float]]:
+              px4_bin: str | None = None, standby: bool = False) -> tuple[dict[str, Any], list[float]]:
     """(figures, reset wall seconds) for one single env on `backend`."""
     from sitl_bridge.bench.stub import BENCH_INSTANCE_BASE
     from sitl_bridge.envs import make_env
 
     # session backends claim a free instance from here up (px4: in 0..9)
     env = make_env(_scenario(), autopilot=backend, speed_factor=0.0, seed=0, instance_base=BENCH_INSTANCE_BASE,
-                   estimator=estimator, px4_bin=px4_bin)
+                   estimator=estimator, px4_bin=px4_bin, standby=standby)
     step = _RandomFlight(env)
     try:
         env.reset(seed=0)
@@ -197,6 +207,8 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
     extra = {"cpu_ms_per_step": cpu} if backend != "direct" and cpu is not None else {}
     if backend == "px4":
         extra["episode_starts"] = starts
+    if standby:
+        extra["standby"] = True
     return _rtf_entry(rtfs, bare, backend=backend, estimator=estimator,
                       steps_per_s=_spread([rtf / _step_s() for rtf in rtfs]), **extra), resets
 
@@ -269,17 +281,17 @@ def _fly_windows(step: Callable[[], float], windows: int, window_s: float, barri
         results.put((window, flown, start, time.perf_counter(), instances))
 
 
-def _parallel_worker(autopilot: str, px4_bin: str | None, windows: int, window_s: float,
+def _parallel_worker(options: dict[str, Any], windows: int, window_s: float,
                      warmup_s: float, index: int, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
-    """Fly one env in this worker process (seeded with the worker's `index`, so worker 0 flies
-    the same episodes whether alone or with others): warm up, then `_fly_windows`; puts
-    ("failed", text) once if anything fails."""
+    """Fly one env with `options` (`EnvOptions` fields) in this worker process (seeded with the
+    worker's `index`, so worker 0 flies the same episodes whether alone or with others): warm
+    up, then `_fly_windows`; puts ("failed", text) once if anything fails."""
     from sitl_bridge.envs import make_env
 
     env = None
     try:
         # session backends claim their own instances (autopilot.allocation): nothing handed in
-        env = make_env(_scenario(), autopilot=autopilot, speed_factor=0.0, seed=index, px4_bin=px4_bin)
+        env = make_env(_scenario(), speed_factor=0.0, seed=index, **options)
         step = _RandomFlight(env, seed=index)
         env.reset(seed=index)
         _fly(step, warmup_s)  # a PX4 boot and takeoff happen here, before any window
@@ -344,11 +356,11 @@ def _windows_rtf(target: Callable[..., None], args: tuple, workers: int,
     return rtfs, [r[4] for r in runs if r[0] == 0]
 
 
-def _parallel_rtf(workers: int, size: Size, window_s: float, autopilot: str = "direct",
-                  px4_bin: str | None = None) -> tuple[list[float], list[tuple[int, ...]]]:
-    """`_windows_rtf` of `workers` env worker processes, `size.reps` windows after one start each."""
-    return _windows_rtf(_parallel_worker, (autopilot, px4_bin, size.reps, window_s, size.warmup_s),
-                        workers, size.reps)
+def _parallel_rtf(workers: int, size: Size, window_s: float,
+                  **options: Any) -> tuple[list[float], list[tuple[int, ...]]]:
+    """`_windows_rtf` of `workers` env worker processes with env `options` (default `direct`),
+    `size.reps` windows after one start each."""
+    return _windows_rtf(_parallel_worker, (options, size.reps, window_s, size.warmup_s), workers, size.reps)
 
 
 def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
@@ -406,12 +418,13 @@ def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
         ("batched", lambda bare: _batched_case(size, bare)),
         ("stub", lambda bare: _env_case("stub", size, bare)),
         ("px4", lambda bare: _env_case("px4", size, bare, px4_bin=px4_bin)),
+        ("px4_standby", lambda bare: _env_case("px4", size, bare, px4_bin=px4_bin, standby=True)),
         ("train_steps_per_s", lambda bare: _train_case(size, bare)),
         ("parallel", lambda bare: _parallel_case(size, bare)),
         ("px4_parallel", lambda bare: _px4_parallel_case(size, bare, px4_bin or "")),
     ]
     for key, case in cases:
-        if key in ("px4", "px4_parallel") and not px4_bin:
+        if key.startswith("px4") and not px4_bin:
             result[key] = {"skipped": "PX4_BIN not set"}
             log(f"  {key}: skipped (PX4_BIN not set)")
             continue
@@ -475,7 +488,8 @@ def _summary(figures: dict[str, Any]) -> str:
                  f"{cpu['children']:.0f} in child processes)")
     if "episode_starts" in figures:
         starts = figures["episode_starts"]
-        text += (f"; {starts['episodes_ended']} episodes ended: {starts['in_air']} next started in the air, "
+        handed = f" ({starts['handovers']} by the standby)" if starts["handovers"] else ""
+        text += (f"; {starts['episodes_ended']} episodes ended: {starts['in_air']} next started in the air{handed}, "
                  f"{starts['restarts']} by a restart")
     return text
 

@@ -25,6 +25,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("world", nargs="?", help="scenario file (worlds/*.yaml); not needed with --resume")
     add_env_autopilot_argument(parser)
+    parser.add_argument("--standby", action="store_true",
+                        help="px4: keep a standby PX4 booted to take over crashed episodes (faster "
+                             "with a free core; README, Episode resets with real PX4)")
     parser.add_argument("--seed", type=int, default=0, help="run seed (network, exploration, episodes)")
     parser.add_argument("--out", default="runs", help="folder for the run directory (default runs/)")
     parser.add_argument("--resume", metavar="RUN_DIR", help="continue this run from its newest good checkpoint")
@@ -131,7 +134,15 @@ def _build(args: argparse.Namespace) -> Trainer:
     from sitl_bridge.rl.scenario_file import check_scenario_file
 
     check_scenario_file(args.world, need_task=True)  # every section, before a run directory exists
+    if args.standby:
+        from sitl_bridge.envs.options import EnvOptions
+
+        try:
+            EnvOptions.of(autopilot=args.autopilot, standby=True)
+        except ValueError as exc:
+            raise ConfigError(f"--standby: {exc}") from None
     config = load_train_config(args.world, overrides)
-    spec = RunSpec(world=args.world, autopilot=args.autopilot, seed=args.seed, init_from=args.init_from)
-    return Trainer.start(args.out, spec, config, scenario_env_factory(args.world, args.autopilot),
-                         progress=progress)
+    spec = RunSpec(world=args.world, autopilot=args.autopilot, seed=args.seed, init_from=args.init_from,
+                   standby=args.standby)
+    factory = scenario_env_factory(args.world, args.autopilot, **({"standby": True} if args.standby else {}))
+    return Trainer.start(args.out, spec, config, factory, progress=progress)

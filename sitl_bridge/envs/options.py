@@ -50,6 +50,10 @@ class EnvOptions:
     render_mode: str | None = None
     """Gymnasium render mode: None (nothing drawn, no cost), `rgb_array` (offscreen frames from
     `render()`), `human` (pybullet's GUI window; implies `gui`)."""
+    standby: bool = False
+    """Keep a standby copy of the session's autopilots booted and hovering, to take over where
+    an episode cannot start in the air (`envs.backends.standby`; kinds that reset in the air,
+    `px4`; not with rendering)."""
 
     def __post_init__(self) -> None:
         kind = env_kind(self.autopilot)  # ValueError naming the choices
@@ -61,6 +65,12 @@ class EnvOptions:
                              f"({', '.join(able)}); {self.autopilot} runs its own estimator")
         if self.render_mode not in RENDER_MODES:
             raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {self.render_mode!r}")
+        if self.standby and not kind.resets_in_air:
+            able = [n for n in names(env=True) if env_kind(n).resets_in_air]
+            raise ValueError(f"standby=True needs an autopilot that flies on between episodes "
+                             f"({', '.join(able)}), got {self.autopilot}")
+        if self.standby and (self.uses_gui or self.render_mode is not None):
+            raise ValueError("standby=True runs the simulation in worker processes: no rendering or GUI")
         if not self.speed_factor >= 0:
             raise ValueError(f"speed_factor must be >= 0, got {self.speed_factor!r}")
 

@@ -55,6 +55,8 @@ class RunSpec:
     autopilot: str = "direct"
     seed: int = 0
     init_from: str | None = None
+    standby: bool = False
+    """Envs with a standby autopilot (`EnvOptions.standby`, px4): speed only, same episodes."""
     """Checkpoint the network started from (curriculum), if any."""
     created: str = ""
     """Creation time, ISO 8601 UTC."""

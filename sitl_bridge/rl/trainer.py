@@ -189,7 +189,8 @@ class Trainer:
             rd.write_run_files(run_dir, spec, config)
         if env_factory is None:
             from sitl_bridge.rl.drones_env import scenario_env_factory
-            env_factory = scenario_env_factory(rd.run_scenario(run_dir), spec.autopilot)
+            env_factory = scenario_env_factory(rd.run_scenario(run_dir), spec.autopilot,
+                                               **({"standby": True} if spec.standby else {}))
         for stale in [*run_dir.glob(".*.tmp*"), *run_dir.glob("*/.*.tmp*")]:
             stale.unlink()  # half-written temp files of a killed session (never renamed into place)
         trainer = cls(run_dir, spec, config, env_factory, **kwargs)

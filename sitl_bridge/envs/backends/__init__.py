@@ -16,7 +16,12 @@ from sitl_bridge.world import World
 
 
 def make_backend(world: World, options: EnvOptions, *, start_altitude_m: float = 2.5) -> Backend:
-    """The backend of `options.autopilot` for `world` (imports only what that backend needs)."""
+    """The backend of `options.autopilot` for `world` (imports only what that backend needs);
+    with `options.standby`, that backend in worker processes with a standby copy."""
+    if options.standby:
+        from sitl_bridge.envs.backends.standby import StandbyBackend
+
+        return StandbyBackend(world, options, start_altitude_m=start_altitude_m)
     return env_kind(options.autopilot).backend_class()(world, options, start_altitude_m=start_altitude_m)
 
 

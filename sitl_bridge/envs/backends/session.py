@@ -91,8 +91,9 @@ class SessionBackend:
     # -- Backend API --------------------------------------------------------------------
     def reset(self, seed: int | None = None) -> Snapshot:
         seed = 0 if seed is None else int(seed)
-        if self.session is not None and self.resets_in_air and self._reset_in_air(seed):
-            return self._snapshot()
+        snapshot = self.fly_on(seed)
+        if snapshot is not None:
+            return snapshot
         if self.session is not None and not self.resets_in_place:
             self._stop()  # e.g. PX4: restart rather than teleport its estimator
         if self.session is None:
@@ -126,6 +127,19 @@ class SessionBackend:
         for collision in session.take_collisions():
             self._collisions.add(collision)
         return self._snapshot()
+
+    def fly_on(self, seed: int) -> Snapshot | None:
+        """The next episode in the air, the autopilots flying on (module docstring), where they
+        can; None where they cannot (not started, a kind that does not, or refused:
+        `last_in_air_refusal` says why; the simulation may then have been reset already)."""
+        if self.session is None or not self.resets_in_air or not self._reset_in_air(seed):
+            return None
+        return self._snapshot()
+
+    def restart(self, seed: int) -> Snapshot:
+        """The next episode on freshly started autopilots (a cold boot for every kind)."""
+        self._stop()
+        return self.reset(seed)
 
     def close(self) -> None:
         if not self._closed:
