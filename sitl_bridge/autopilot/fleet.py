@@ -45,6 +45,7 @@ from sitl_bridge.hil.errors import LinkClosed, LockstepTimeout
 from sitl_bridge.ports import MAX_INSTANCE, VehiclePorts, vehicle_ports
 
 if TYPE_CHECKING:
+    from sitl_bridge.autopilot.in_air_reset import Estimate
     from sitl_bridge.hil import HilLink, Lockstep
     from sitl_bridge.world.schema import World
 
@@ -199,6 +200,12 @@ class AutopilotFleet(ABC):
         measured state). Kinds with `resets_in_air` answer; may advance simulated time a
         little to observe fresh reports."""
         return f"{type(self).__name__} does not reset in the air"
+
+    def estimates(self, lockstep: Lockstep) -> list[Estimate]:
+        """Held, right after an `in_air_refusal` that found none: what each vehicle's autopilot
+        estimates of its own state (`autopilot.in_air_reset` starts the next episode there);
+        SessionError where one cannot tell. Kinds with `resets_in_air` answer."""
+        raise NotImplementedError(f"{type(self).__name__} does not reset in the air")
 
     @abstractmethod
     def restart(self, lockstep: Lockstep, reset_simulation: Callable[[], None] | None = None) -> None:

@@ -5,22 +5,30 @@ The caller (the env's session backend) holds the lockstep with every vehicle hov
 under a zero velocity setpoint that its client keeps streaming. `reset_in_air` then:
 
 1. asks the fleet (`in_air_refusal`: armed, offboard, no failsafe, in the air, slow, level,
-   estimate following);
+   estimate following) and reads what each autopilot estimates of its vehicle
+   (`AutopilotFleet.estimates`: position, velocity, tilt);
 2. resets the simulation as a session reset does (the layout drawn from the seed, time back
-   to 0, sensor noise re-seeded) and places every vehicle `altitude_m` above its spawn with
-   the attitude and rotor speeds it flew with, at rest (velocity zeroed, already slow);
+   to 0, sensor noise re-seeded) and places every vehicle `altitude_m` above its spawn in the
+   state its autopilot estimates: its estimated tilt and velocity, the yaw and rotor speeds it
+   flew with;
 3. gives every sensor suite the jump as its measured position offset (new offset = old offset
-   + old position - new position, `Lockstep.reset_simulation(continuous=True)`): GPS,
-   barometer and HIL ground truth go on continuously, so the autopilot's estimator never sees
-   a jump and there is no estimator offset to converge (the thesis's teleport problem), while
-   observations and rewards keep reading the simulation's truth;
+   + old position - new position, `Lockstep.reset_simulation(continuous=True)`), moved onto
+   the autopilot's own position estimate: GPS, barometer and HIL ground truth go on without a
+   jump the estimator could see, so there is no estimator offset to converge (the thesis's
+   teleport problem), while observations and rewards keep reading the simulation's truth;
 4. runs `settle_s` of simulated time (the same every episode: the controllers' integrators
    settle under the zero setpoint) and asks the fleet again.
 
-Attitude and rotor speeds carry over because a tilt or yaw the gyro never saw would stay in
-the autopilot's attitude estimate (and its magnetometer would disagree): the vehicle keeps
-the yaw it flew with, so an episode whose spawn yaw differs by more than
-`MAX_YAW_ERROR_RAD` is refused. The measured offset is bounded
+Why the estimated state and not the true one: an estimator cannot be reset without a reboot,
+and what it got wrong in the last episode would carry into the next. PX4's EKF2, after a
+manoeuvre, holds a tilt error of a few tenths of a degree and a velocity error of 5-9 cm/s
+that take ~10 s to decay, while its controller flies the vehicle along with them: started from
+the true state, consecutive episodes' first seconds differed by up to 6 cm; started where the
+estimate is (which the sensors then confirm), the estimate and the truth agree within ~1 cm/s
+at the episode's start and the first seconds within 3 cm (`tests/test_in_air_reset.py`).
+The yaw is the truth's because the magnetometer measures it, and rotor speeds carry over
+because a thrust step would show in the accelerometer: a vehicle keeps the yaw it flew with,
+so an episode whose spawn yaw differs by more than `MAX_YAW_ERROR_RAD` is refused. The measured offset is bounded
 (`sensors.suite.MAX_POSITION_OFFSET_M`, see there why); past it the reset is refused too.
 A refusal returns the reason, and the caller resets another way (restarts the autopilots).
 """
@@ -29,12 +37,24 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
-from sitl_bridge.frames import wrap_pi, yaw_ned_to_enu
+from sitl_bridge.frames import quat_from_euler_t, quat_ned_frd_to_enu_flu_t, wrap_pi, yaw_ned_to_enu
 
 MAX_YAW_ERROR_RAD = math.radians(5.0)
 """Largest difference between the yaw a vehicle keeps and its spawn yaw."""
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What an autopilot estimates of its vehicle, against what its sensors measure."""
+
+    position_error_ned_m: tuple[float, float, float]
+    """Measured position (the truth plus the sensors' offset) minus the estimate (m, NED)."""
+    velocity_ned_m_s: tuple[float, float, float]
+    roll_pitch_rad: tuple[float, float]
+    """Estimated roll and pitch (NED/FRD Euler angles)."""
 
 
 def reset_in_air(fleet: Any, lockstep: Any, seed: int | None, sensor_seeds: Sequence[int | None] | None,
@@ -49,18 +69,23 @@ def reset_in_air(fleet: Any, lockstep: Any, seed: int | None, sensor_seeds: Sequ
         return f"before the reset: {refusal}"
     sim = lockstep.sim
     count = sim.num_vehicles
+    estimates = fleet.estimates(lockstep)
     states = [sim.state(k) for k in range(count)]
-    attitudes = [tuple(float(c) for c in state.quaternion_enu_flu) for state in states]
     rotors = [tuple(float(w) for w in state.rotor_speeds_rad_s) for state in states]
-    yaws = [yaw_ned_to_enu(float(state.euler_ned_frd_rad[2])) for state in states]
+    yaws_ned = [float(state.euler_ned_frd_rad[2]) for state in states]
+    yaws = [yaw_ned_to_enu(yaw) for yaw in yaws_ned]
 
     def place(sim: Any) -> None:
-        for k in range(count):
-            x, y, z = (float(c) for c in sim.state(k).position_enu_m)  # re-spawned, at rest
-            sim.place_vehicle(k, (x, y, z + altitude_m), quaternion_enu_flu=attitudes[k],
-                              rotor_speeds_rad_s=rotors[k])
+        for k, estimate in enumerate(estimates):
+            x, y, z = (float(c) for c in sim.state(k).position_enu_m)  # re-spawned
+            roll, pitch = estimate.roll_pitch_rad
+            north, east, down = estimate.velocity_ned_m_s
+            sim.place_vehicle(k, (x, y, z + altitude_m),
+                              quaternion_enu_flu=quat_ned_frd_to_enu_flu_t(quat_from_euler_t(roll, pitch, yaws_ned[k])),
+                              velocity_enu_m_s=(east, north, -down), rotor_speeds_rad_s=rotors[k])
 
-    if not lockstep.reset_simulation(seed, sensor_seeds, place=place, continuous=True):
+    onto_estimates = [tuple(-e for e in estimate.position_error_ned_m) for estimate in estimates]
+    if not lockstep.reset_simulation(seed, sensor_seeds, place=place, continuous=True, shifts_ned_m=onto_estimates):
         return "the measured position offset would pass its bound"
     for k in range(count):
         off = abs(wrap_pi(yaws[k] - sim.layout.spawn_yaws_rad[k]))

@@ -239,7 +239,8 @@ class Lockstep:
 
     def reset_simulation(self, seed: int | None = None,
                          sensor_seeds: Sequence[int | None] | None = None, *,
-                         place: Callable[[Any], None] | None = None, continuous: bool = False) -> bool:
+                         place: Callable[[Any], None] | None = None, continuous: bool = False,
+                         shifts_ned_m: Sequence[Sequence[float]] | None = None) -> bool:
         """Hold, reset the simulation in place (time 0, vehicles re-spawned) and every sensor
         suite with it (their sample schedules follow simulated time). The links keep the
         autopilots' clock monotonic across the jump. Sensor suite i is re-seeded with
@@ -248,7 +249,9 @@ class Lockstep:
         `place(sim)` runs after the re-spawn (e.g. teleports the vehicles into the air).
         `continuous`: every suite's measured position offset is set so that the position it
         reports does not jump (new offset = old offset + old position - new position): an
-        autopilot flying on these sensors sees no teleport. Returns False (offsets left at zero,
+        autopilot flying on these sensors sees no teleport; `shifts_ned_m` (per suite) then moves
+        each reported position by that much on top (the in-air reset: onto the autopilot's own
+        estimate). Returns False (offsets left at zero,
         the simulation reset all the same) when an offset would exceed the suites' bound
         (`sensors.suite.MAX_POSITION_OFFSET_M`); True otherwise."""
         self.hold()
@@ -267,9 +270,10 @@ class Lockstep:
         if not continuous:
             return True
         offsets = []
-        for index, seen in enumerate(measured):
+        shifts = shifts_ned_m or [(0.0, 0.0, 0.0)] * len(measured)
+        for index, (seen, shift) in enumerate(zip(measured, shifts, strict=True)):
             position = self.sim.state(index).position_ned_m
-            offsets.append(tuple(s - float(p) for s, p in zip(seen, position, strict=True)))
+            offsets.append(tuple(s + float(d) - float(p) for s, d, p in zip(seen, shift, position, strict=True)))
         if not all(offset_within_bounds(offset) for offset in offsets):
             return False
         for suite, offset in zip(self.sensors, offsets, strict=True):

@@ -22,6 +22,7 @@ from sitl_bridge.autopilot.fleet import (
     VehicleSummary,
     link_summary,
 )
+from sitl_bridge.autopilot.in_air_reset import Estimate
 from sitl_bridge.autopilot.px4.delivery import wait_delivered
 from sitl_bridge.autopilot.px4.in_air import IN_AIR_LIMITS, InAirLimits
 from sitl_bridge.autopilot.px4.in_air import refusal as in_air_refusal
@@ -163,6 +164,20 @@ class Px4Fleet:
             if reason:
                 return f"vehicle {index} (PX4 instance {autopilot.instance}): {reason}"
         return ""
+
+    def estimates(self, lockstep: Any) -> list[Estimate]:
+        """What each PX4 estimates of its vehicle (its last reports: call right after an
+        `in_air_refusal`, which makes them fresh)."""
+        estimates = []
+        for index, autopilot in enumerate(self.autopilots):
+            obs, origin = autopilot.poll(), self._origin_offsets[index]
+            if obs.velocity_ned_m_s is None or obs.attitude_rad is None or origin is None:
+                raise Px4Error(f"PX4 instance {autopilot.instance}: no estimate reported yet")
+            error = tuple(o - g for o, g in zip(self._offset(lockstep, index, obs), origin, strict=True))
+            estimates.append(Estimate(position_error_ned_m=error,  # type: ignore[arg-type]
+                                      velocity_ned_m_s=tuple(obs.velocity_ned_m_s),  # type: ignore[arg-type]
+                                      roll_pitch_rad=obs.attitude_rad[:2]))
+        return estimates
 
     def reset_in_place(self, lockstep: Any, reset: Callable[[], None] | None = None, *,
                        tolerance_m: float = 0.3,
@@ -313,6 +328,12 @@ class Px4SitlFleet(AutopilotFleet):
             raise self.explain(exc) from exc
         except Px4Error as exc:  # died: the caller restarts it
             return str(exc).splitlines()[0]
+
+    def estimates(self, lockstep: Any) -> list[Estimate]:
+        try:
+            return self._fleet().estimates(lockstep)
+        except Px4Error as exc:  # no report yet: the caller restarts instead
+            raise SessionError(str(exc)) from exc
 
     def deliver_setpoints(self, velocities_ned_m_s: Mapping[int, Sequence[float]],
                           serve_until: ServeUntil, timeout_s: float) -> None:

@@ -40,6 +40,7 @@ class Px4Observation:
     params_pending: tuple[str, ...] = ()  # `wall` parameters not yet confirmed
     position_ned_m: tuple[float, float, float] | None = None  # PX4's estimate (LOCAL_POSITION_NED)
     velocity_ned_m_s: tuple[float, float, float] | None = None
+    attitude_rad: tuple[float, float, float] | None = None  # PX4's estimate (ATTITUDE): roll, pitch, yaw
     acks: dict[int, int] = field(default_factory=dict)  # command -> MAV_RESULT
 
     def summary(self) -> VehicleSummary:
@@ -151,6 +152,9 @@ class GcsObserver:
                     _t, x, y, z, vx, vy, vz = mavlink.unpack_payload(frame)
                     obs.position_ned_m = (x, y, z)
                     obs.velocity_ned_m_s = (vx, vy, vz)
+                elif msgid == mavlink.dialect.MAVLINK_MSG_ID_ATTITUDE:
+                    _t, roll, pitch, yaw, *_rates = mavlink.unpack_payload(frame)
+                    obs.attitude_rad = (roll, pitch, yaw)
                 elif msgid == mavlink.dialect.MAVLINK_MSG_ID_COMMAND_ACK:
                     msg = mavlink.decode_frame(self._codec, frame)
                     obs.acks[msg.command] = msg.result
