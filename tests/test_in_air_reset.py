@@ -72,6 +72,12 @@ def test_continuous_reset_hides_the_teleport_from_the_sensors(free_instance):
         assert np.allclose(np.mean(accel, axis=0), (0.0, 0.0, -9.8066), atol=0.1)
         assert np.abs(np.asarray(accel) - (0.0, 0.0, -9.8066)).max() < 0.8  # ~6 sigma of the noise
 
+        # onto an autopilot's estimate (`reset_in_air`): the reported position moves by the shift only
+        before = suite.sample(sim.state(0), sim.time_us).truth.position_ned_m
+        assert lockstep.reset_simulation(1, [1], place=place, continuous=True, shifts_ned_m=[(0.1, -0.2, 0.05)])
+        after = suite.sample(sim.state(0), sim.time_us).truth.position_ned_m
+        assert np.allclose(after - before, (0.1, -0.2, 0.05), atol=1e-9)
+
         far = MAX_POSITION_OFFSET_M[0] + 50.0  # past the bound: refused, offsets back to zero
         refused = lockstep.reset_simulation(2, [2], place=lambda s: s.place_vehicle(0, (far, 0.0, 3.0)),
                                             continuous=True)
