@@ -166,6 +166,8 @@ class StandbyBackend:
         """Episodes the standby took over (each spared a restart in the foreground)."""
         self.restarts = 0
         """Episodes started by a restart in the foreground (the first included)."""
+        self.last_standby_refusal = ""
+        """Why the standby could not take over at the last handover it was asked for."""
         self._spec = (world, replace(options, standby=False), float(start_altitude_m))
         self._active: _Worker | None = None
         self._standby: _Worker | None = None
@@ -231,8 +233,9 @@ class StandbyBackend:
             if standby.pending:
                 standby.result()  # still booting: waiting costs less than a restart from scratch
             snapshot = standby.call("fly_on", seed)
-        except BackendError:
-            snapshot = None  # its boot failed: booted again below, the active one restarts
+            self.last_standby_refusal = standby.last_in_air_refusal
+        except BackendError as exc:  # its boot failed: booted again below, the active one restarts
+            snapshot, self.last_standby_refusal = None, str(exc)
         if snapshot is None:
             self._replace_standby(seed)
             return None
