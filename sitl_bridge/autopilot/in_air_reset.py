@@ -28,8 +28,9 @@ estimate is (which the sensors then confirm), the estimate and the truth agree w
 at the episode's start and the first seconds within 3 cm (`tests/test_in_air_reset.py`).
 The yaw is the truth's because the magnetometer measures it, and rotor speeds carry over
 because a thrust step would show in the accelerometer: a vehicle keeps the yaw it flew with,
-so an episode whose spawn yaw differs by more than `MAX_YAW_ERROR_RAD` is refused. The measured offset is bounded
-(`sensors.suite.MAX_POSITION_OFFSET_M`, see there why); past it the reset is refused too.
+so an episode whose spawn yaw differs by more than `MAX_YAW_ERROR_RAD` is refused. The
+measured offset is bounded (`sensors.suite.MAX_POSITION_OFFSET_M`, see there why); past it
+the reset is refused too.
 A refusal returns the reason, and the caller resets another way (restarts the autopilots).
 """
 

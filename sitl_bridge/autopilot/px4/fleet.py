@@ -166,8 +166,8 @@ class Px4Fleet:
         return ""
 
     def estimates(self, lockstep: Any) -> list[Estimate]:
-        """What each PX4 estimates of its vehicle (its last reports: call right after an
-        `in_air_refusal`, which makes them fresh)."""
+        """What each PX4 estimates of its vehicle, read now (call right after an
+        `in_air_refusal`, which leaves the reports fresh)."""
         estimates = []
         for index, autopilot in enumerate(self.autopilots):
             obs, origin = autopilot.poll(), self._origin_offsets[index]
