@@ -157,7 +157,8 @@ class SimSession:
         self.sensors = [SensorSuite(world.home, seed=sensor_seed(self.seed, k), step_us=step_us)
                         for k in range(self.num_vehicles)]
         for instance in self.instances:
-            link = HilLink(instance, self.host, step_us=step_us)
+            link = HilLink(instance, self.host, step_us=step_us,
+                           ground_truth=self.autopilots.reads_hil_ground_truth)
             self._closers.append(link.close)
             self.links.append(link)
         self._closers.append(self.autopilots.close)

@@ -236,6 +236,30 @@ def test_set_message_interval_controls_ground_truth(rig):
     assert 49 <= len(peer.of_type("HIL_STATE_QUATERNION")) <= 51  # 50 Hz
 
 
+def test_a_link_without_ground_truth_ignores_the_autopilots_request(rig):
+    """`HilLink(ground_truth=False)` (PX4 with its logger off: nothing reads the ground truth)."""
+    _, _, link, peer, lockstep = rig
+    link.ground_truth, link.state_interval_us = False, -1
+    peer.send(mav.MAVLink_command_long_message(0, 0, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                               115, 5000, 0, 0, 0, 0, 0))
+    lockstep.run_for(0.04)
+    peer.received.clear()
+    lockstep.run_for(0.4)
+    peer.pump()
+    assert peer.of_type("HIL_STATE_QUATERNION") == [] and peer.of_type("HIL_SENSOR")
+
+
+def test_px4_reads_hil_ground_truth_only_when_it_logs(tmp_path):
+    from sitl_bridge.autopilot.fleet import FleetConfig
+    from sitl_bridge.autopilot.px4.fleet import Px4SitlFleet
+    from sitl_bridge.world import load_world
+
+    world = load_world(Path(__file__).resolve().parents[1] / "worlds" / "empty.yaml")
+    assert not Px4SitlFleet(FleetConfig(world=world, instances=(0,))).reads_hil_ground_truth  # SDLOG_MODE -1
+    logging = FleetConfig(world=world, instances=(0,), params={"SDLOG_MODE": 0})
+    assert Px4SitlFleet(logging).reads_hil_ground_truth
+
+
 def test_closed_connection_and_reconnect(rig):
     sim, _, link, peer, lockstep = rig
     lockstep.run_for(0.1)

@@ -132,6 +132,12 @@ class AutopilotFleet(ABC):
         self.config = config
         self.instances = tuple(config.instances)
 
+    @property
+    def reads_hil_ground_truth(self) -> bool:
+        """Whether these autopilots read the HIL_STATE_QUATERNION ground truth they may ask for
+        (False: the HIL links do not send it, which saves both sides a message every step)."""
+        return True
+
     # -- lifecycle ----------------------------------------------------------------------------
     @abstractmethod
     def start(self, links: Sequence[HilLink]) -> list[Pump]:

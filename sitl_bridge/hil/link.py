@@ -92,6 +92,8 @@ class HilLink:
         step_us: the physics step, used to keep wire time monotonic across resets.
         state_interval_us: HIL_STATE_QUATERNION interval before the autopilot asks for one
             (0: every step like Gazebo, -1: off). PX4 asks for 5000 us on connect.
+        ground_truth: False: never send HIL_STATE_QUATERNION, whatever the autopilot asks (for
+            one that provably does not read it: `AutopilotFleet.reads_hil_ground_truth`).
         system_id, component_id: ids of the simulator's messages (Gazebo's 1/200).
     """
 
@@ -103,6 +105,7 @@ class HilLink:
         *,
         step_us: int = DEFAULT_STEP_US,
         state_interval_us: int = INTERVAL_DEFAULT,
+        ground_truth: bool = True,
         system_id: int = 1,
         component_id: int = 200,
     ) -> None:
@@ -110,7 +113,8 @@ class HilLink:
         self.host = host
         self.port = base_port + instance
         self.step_us = step_us
-        self.default_state_interval_us = state_interval_us
+        self.ground_truth = ground_truth
+        self.default_state_interval_us = state_interval_us if ground_truth else INTERVAL_DISABLED
         self.stats = LinkStats()
         self.heartbeat: AutopilotHeartbeat | None = None
         self._encoder = mavlink.FrameEncoder(system_id, component_id)
@@ -434,7 +438,8 @@ class HilLink:
             frame.payload
         )
         self.stats.commands += 1
-        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and int(p1) == mavlink.HIL_STATE_QUATERNION:
+        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and int(p1) == mavlink.HIL_STATE_QUATERNION \
+                and self.ground_truth:
             interval = int(p2)
             if interval == INTERVAL_DEFAULT:
                 interval = self.default_state_interval_us

@@ -27,6 +27,7 @@ from sitl_bridge.autopilot.px4.delivery import wait_delivered
 from sitl_bridge.autopilot.px4.in_air import IN_AIR_LIMITS, InAirLimits
 from sitl_bridge.autopilot.px4.in_air import refusal as in_air_refusal
 from sitl_bridge.autopilot.px4.observer import Px4Observation
+from sitl_bridge.autopilot.px4.params import load_param_overrides
 from sitl_bridge.autopilot.px4.process import Px4Autopilot, Px4Config, Px4Died, Px4Error
 from sitl_bridge.autopilot.px4.temp_dirs import make_temp_run_dir
 from sitl_bridge.errors import ConfigError
@@ -281,6 +282,13 @@ class Px4SitlFleet(AutopilotFleet):
         self.px4 = Px4Fleet(px4_config, self.instances)
         self.px4.start()
         return []
+
+    @property
+    def reads_hil_ground_truth(self) -> bool:
+        # PX4 asks for HIL_STATE_QUATERNION at 200 Hz but only publishes *_groundtruth topics
+        # from it, which nothing but its logger reads (not the estimator, not the controllers).
+        mode = load_param_overrides(extra=self.config.params).get("SDLOG_MODE")
+        return mode is None or mode.value != -1
 
     def _fleet(self) -> Px4Fleet:
         if self.px4 is None:
