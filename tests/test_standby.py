@@ -78,6 +78,13 @@ def test_a_standby_px4_takes_over_where_the_flying_one_cannot_fly_on(px4_bin):
             flown = backend.fly([np.array([1.0, 0.0, 0.0])], 1.0).states[0]
             assert flown.position_enu_m[1] - state.position_enu_m[1] > 0.3  # it flies the episode
         assert backend.in_air_resets == 2
+        dead = backend._active
+        dead.process.kill()  # the flying worker dies: the standby takes over, a new worker boots
+        dead.process.wait()
+        state = backend.reset(3).states[0]
+        assert backend.handovers == 3 and np.allclose(state.position_enu_m, (0.0, 0.0, 2.56), atol=0.1)
+        assert backend.fly([np.array([1.0, 0.0, 0.0])], 1.0).states[0].position_enu_m[1] - state.position_enu_m[1] > 0.3
+        assert backend._standby is not dead and backend._standby.alive
     finally:
         backend.close()
     for worker in (backend._active, backend._standby):

@@ -184,8 +184,11 @@ class StandbyBackend:
             self._active, self._standby = _Worker(*self._spec), _Worker(*self._spec)
             self._standby.send("boot", seed)  # boots while the active one boots and flies
             return self._restart(seed)
-        snapshot = self._active.call("fly_on", seed)
-        self._last_refusal = self._active.last_in_air_refusal
+        try:
+            snapshot = self._active.call("fly_on", seed)
+            self._last_refusal = self._active.last_in_air_refusal
+        except BackendError as exc:  # its worker died: the standby takes over, or a new one starts
+            snapshot, self._last_refusal = None, str(exc)
         if snapshot is not None:
             return snapshot
         snapshot = self._take_over(seed)
@@ -237,25 +240,30 @@ class StandbyBackend:
         except BackendError as exc:  # its boot failed: booted again below, the active one restarts
             snapshot, self.last_standby_refusal = None, str(exc)
         if snapshot is None:
-            self._replace_standby(seed)
+            self._standby = self._boot(standby, seed)
             return None
-        self._active, self._standby = standby, old
-        old.send("boot", seed)  # the next standby, booting while this episode flies
+        self._active, self._standby = standby, self._boot(old, seed)  # boots while this episode flies
         self.handovers += 1
         return snapshot
 
-    def _replace_standby(self, seed: int) -> None:
-        standby = self._standby
-        assert standby is not None
-        if not standby.alive:
-            self._flown_on += standby.in_air_resets
-            standby.close()
-            self._standby = standby = _Worker(*self._spec)
-        standby.send("boot", seed)
+    def _alive(self, worker: _Worker) -> _Worker:
+        """`worker`, or a new one in its place where its process has exited."""
+        if worker.alive:
+            return worker
+        self._flown_on += worker.in_air_resets
+        worker.close()
+        return _Worker(*self._spec)
+
+    def _boot(self, worker: _Worker, seed: int) -> _Worker:
+        """Start `worker` (or its replacement) booting as the standby; returns it."""
+        worker = self._alive(worker)
+        worker.send("boot", seed)
+        return worker
 
     def _restart(self, seed: int) -> Snapshot:
         self.restarts += 1
-        return self._worker().call("restart", seed)
+        self._active = self._alive(self._worker())
+        return self._active.call("restart", seed)
 
 
 if __name__ == "__main__":
