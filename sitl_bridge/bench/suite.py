@@ -17,6 +17,8 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   `episode_starts`: of the episodes that ended in the timed repetitions, how many the next
   started in the air and how many by a PX4 restart (random actions crash often; a restart
   costs ~1.2 s, so the figure depends on how many fell into the timed repetitions).
+* `px4_standby`: the same with `standby=True` (a standby PX4 takes over where the flying one
+  cannot fly on; `episode_starts.handovers`).
 * `reset_s`: wall seconds per `reset()` for each backend measured (median, min, max).
 * `train_steps_per_s`: DQN training env steps per wall second, updates included (thesis O
   settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
