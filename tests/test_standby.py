@@ -71,7 +71,7 @@ def test_a_standby_px4_takes_over_where_the_flying_one_cannot_fly_on(px4_bin):
             backend.fly([np.array([0.0, 0.0, 2.0])], 3.0)  # NED: down into the ground
             snapshot = backend.reset(episode)
             assert backend.last_in_air_refusal, "the landed PX4 should not have flown on"
-            assert (backend.handovers, backend.restarts) == (episode, 1)
+            assert (backend.handovers, backend.restarts) == (episode, 1), backend.last_standby_refusal
             state = snapshot.states[0]
             assert np.allclose(state.position_enu_m, (0.0, 0.0, 2.56), atol=0.1)
             assert math.hypot(*state.velocity_enu_m_s) < 0.1

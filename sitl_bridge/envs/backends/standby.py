@@ -25,6 +25,7 @@ need the simulation in this process: not available with a standby.
 
 from __future__ import annotations
 
+import logging
 import socket
 import subprocess
 import sys
@@ -40,6 +41,7 @@ from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.world import World
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 CLOSE_TIMEOUT_S = 30.0
 """Wall seconds a worker has to close its session (stop its autopilots) before it is killed."""
@@ -240,6 +242,8 @@ class StandbyBackend:
         except BackendError as exc:  # its boot failed: booted again below, the active one restarts
             snapshot, self.last_standby_refusal = None, str(exc)
         if snapshot is None:
+            log.warning("%s: the standby could not take over (%s); restarting in the foreground",
+                        self.name, self.last_standby_refusal)
             self._standby = self._boot(standby, seed)
             return None
         self._active, self._standby = standby, self._boot(old, seed)  # boots while this episode flies
