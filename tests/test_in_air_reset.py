@@ -39,6 +39,20 @@ def test_measured_offset_shifts_every_reported_position_and_nothing_else():
             shifted.position_offset_ned_m = (MAX_POSITION_OFFSET_M[0] + 1.0, 0.0, 0.0)
 
 
+def test_an_estimate_far_from_the_truth_is_not_placed():
+    """The in-air reset places a vehicle in its autopilot's estimated tilt and velocity only
+    when they are close to the truth (a stale report must not throw the vehicle)."""
+    from sitl_bridge.autopilot.in_air_reset import Estimate, _correction_refusal
+
+    world = load_world(WORLDS / "empty.yaml")
+    with Simulation(world) as sim:
+        sim.place_vehicle(0, (0.0, 0.0, 3.0), velocity_enu_m_s=(0.1, 0.0, 0.0))  # east
+        state = sim.state(0)
+        assert _correction_refusal(Estimate((0.0, 0.0, 0.0), (0.02, 0.12, 0.0), (0.01, -0.01)), state) == ""
+        assert "tilt" in _correction_refusal(Estimate((0.0, 0.0, 0.0), (0.0, 0.1, 0.0), (0.1, 0.0)), state)
+        assert "velocity" in _correction_refusal(Estimate((0.0, 0.0, 0.0), (0.5, 0.1, 0.0), (0.0, 0.0)), state)
+
+
 def _hover(sim: Simulation) -> list[MotorCommand]:
     u = sim.params.hover_input(sim.gravity_m_s2)
     return [MotorCommand((u, u, u, u), True)] * sim.num_vehicles

@@ -25,7 +25,9 @@ manoeuvre, holds a tilt error of a few tenths of a degree and a velocity error o
 that take ~10 s to decay, while its controller flies the vehicle along with them: started from
 the true state, consecutive episodes' first seconds differed by up to 6 cm; started where the
 estimate is (which the sensors then confirm), the estimate and the truth agree within ~1 cm/s
-at the episode's start and the first seconds within 3 cm (`tests/test_in_air_reset.py`).
+at the episode's start and the first seconds within 3 cm (`tests/test_in_air_reset.py`). An
+estimate further from the truth than `MAX_TILT_CORRECTION_RAD` or `MAX_VELOCITY_CORRECTION_M_S`
+is not placed (refused).
 The yaw is the truth's because the magnetometer measures it, and rotor speeds carry over
 because a thrust step would show in the accelerometer: a vehicle keeps the yaw it flew with,
 so an episode whose spawn yaw differs by more than `MAX_YAW_ERROR_RAD` is refused. The
@@ -45,6 +47,11 @@ from sitl_bridge.frames import quat_from_euler_t, quat_ned_frd_to_enu_flu_t, wra
 
 MAX_YAW_ERROR_RAD = math.radians(5.0)
 """Largest difference between the yaw a vehicle keeps and its spawn yaw."""
+MAX_TILT_CORRECTION_RAD = math.radians(2.0)
+MAX_VELOCITY_CORRECTION_M_S = 0.15
+"""The most the placement may differ from the true tilt and velocity (PX4 after a manoeuvre:
+~0.3 deg, <= 0.09 m/s); a larger estimate error is not placed (a report read out of date, or an
+estimator that is not following): refused, the caller restarts."""
 
 
 @dataclass(frozen=True)
@@ -72,6 +79,10 @@ def reset_in_air(fleet: Any, lockstep: Any, seed: int | None, sensor_seeds: Sequ
     count = sim.num_vehicles
     estimates = fleet.estimates(lockstep)
     states = [sim.state(k) for k in range(count)]
+    for k, (estimate, state) in enumerate(zip(estimates, states, strict=True)):
+        reason = _correction_refusal(estimate, state)
+        if reason:
+            return f"vehicle {k}: {reason}"
     rotors = [tuple(float(w) for w in state.rotor_speeds_rad_s) for state in states]
     yaws_ned = [float(state.euler_ned_frd_rad[2]) for state in states]
     yaws = [yaw_ned_to_enu(yaw) for yaw in yaws_ned]
@@ -95,3 +106,16 @@ def reset_in_air(fleet: Any, lockstep: Any, seed: int | None, sensor_seeds: Sequ
     lockstep.run_for(settle_s)
     refusal = fleet.in_air_refusal(lockstep)
     return f"after the settle: {refusal}" if refusal else ""
+
+
+def _correction_refusal(estimate: Estimate, state: Any) -> str:
+    """Why `estimate` is too far from the true `state` to place the vehicle there ('' if not)."""
+    roll, pitch, _ = (float(a) for a in state.euler_ned_frd_rad)
+    tilt = math.hypot(estimate.roll_pitch_rad[0] - roll, estimate.roll_pitch_rad[1] - pitch)
+    if not tilt <= MAX_TILT_CORRECTION_RAD:
+        return f"estimated tilt {math.degrees(tilt):.1f} deg off the truth"
+    east, north, up = (float(v) for v in state.velocity_enu_m_s)
+    off = math.dist(estimate.velocity_ned_m_s, (north, east, -up))
+    if not off <= MAX_VELOCITY_CORRECTION_M_S:
+        return f"estimated velocity {off:.2f} m/s off the truth"
+    return ""
