@@ -218,35 +218,29 @@ def test_timeout_is_reported(rig):
     assert lockstep.stats.timeouts == 1 and link.stats.timeouts == 1
 
 
+def _ground_truth_after_asking(peer, lockstep, interval_us: float, run_s: float) -> int:
+    """HIL_STATE_QUATERNION messages in `run_s` after the peer asked for `interval_us`."""
+    peer.send(mav.MAVLink_command_long_message(0, 0, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                               115, interval_us, 0, 0, 0, 0, 0))
+    lockstep.run_for(0.04)
+    peer.received.clear()
+    lockstep.run_for(run_s)
+    peer.pump()
+    assert peer.of_type("HIL_SENSOR")
+    return len(peer.of_type("HIL_STATE_QUATERNION"))
+
+
 def test_set_message_interval_controls_ground_truth(rig):
-    _, _, link, peer, lockstep = rig
-    peer.send(mav.MAVLink_command_long_message(0, 0, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                               115, -1, 0, 0, 0, 0, 0))
-    lockstep.run_for(0.04)
-    peer.received.clear()
-    lockstep.run_for(0.4)
-    peer.pump()
-    assert peer.of_type("HIL_STATE_QUATERNION") == []
-    peer.send(mav.MAVLink_command_long_message(0, 0, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                               115, 20000, 0, 0, 0, 0, 0))
-    lockstep.run_for(0.04)
-    peer.received.clear()
-    lockstep.run_for(1.0)
-    peer.pump()
-    assert 49 <= len(peer.of_type("HIL_STATE_QUATERNION")) <= 51  # 50 Hz
+    _, _, _, peer, lockstep = rig
+    assert _ground_truth_after_asking(peer, lockstep, -1, 0.4) == 0
+    assert 49 <= _ground_truth_after_asking(peer, lockstep, 20000, 1.0) <= 51  # 50 Hz
 
 
 def test_a_link_without_ground_truth_ignores_the_autopilots_request(rig):
     """`HilLink(ground_truth=False)` (PX4 with its logger off: nothing reads the ground truth)."""
     _, _, link, peer, lockstep = rig
     link.ground_truth, link.state_interval_us = False, -1
-    peer.send(mav.MAVLink_command_long_message(0, 0, mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                               115, 5000, 0, 0, 0, 0, 0))
-    lockstep.run_for(0.04)
-    peer.received.clear()
-    lockstep.run_for(0.4)
-    peer.pump()
-    assert peer.of_type("HIL_STATE_QUATERNION") == [] and peer.of_type("HIL_SENSOR")
+    assert _ground_truth_after_asking(peer, lockstep, 5000, 0.4) == 0
 
 
 def test_px4_reads_hil_ground_truth_only_when_it_logs(tmp_path):
