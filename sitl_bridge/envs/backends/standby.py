@@ -173,8 +173,9 @@ class StandbyBackend:
         self._spec = (world, replace(options, standby=False), float(start_altitude_m))
         self._active: _Worker | None = None
         self._standby: _Worker | None = None
+        self.last_in_air_refusal = ""
+        """Why the active autopilots could not fly on at the last reset ('' when they did)."""
         self._flown_on = 0  # in-air resets of workers replaced since
-        self._last_refusal = ""
         self._closed = False
 
     # -- Backend API --------------------------------------------------------------------
@@ -188,9 +189,9 @@ class StandbyBackend:
             return self._restart(seed)
         try:
             snapshot = self._active.call("fly_on", seed)
-            self._last_refusal = self._active.last_in_air_refusal
+            self.last_in_air_refusal = self._active.last_in_air_refusal
         except BackendError as exc:  # its worker died: the standby takes over, or a new one starts
-            snapshot, self._last_refusal = None, str(exc)
+            snapshot, self.last_in_air_refusal = None, str(exc)
         if snapshot is not None:
             return snapshot
         snapshot = self._take_over(seed)
@@ -217,11 +218,6 @@ class StandbyBackend:
         by the standby's."""
         live = sum(w.in_air_resets for w in (self._active, self._standby) if w is not None)
         return self._flown_on + live
-
-    @property
-    def last_in_air_refusal(self) -> str:
-        """Why the active autopilots could not fly on at the last reset ('' when they did)."""
-        return self._last_refusal
 
     # -- internals ------------------------------------------------------------------------
     def _worker(self) -> _Worker:
