@@ -208,9 +208,10 @@ class AutopilotFleet(ABC):
         return f"{type(self).__name__} does not reset in the air"
 
     def estimates(self, lockstep: Lockstep) -> list[Estimate]:
-        """Held, right after an `in_air_refusal` that found none: what each vehicle's autopilot
-        estimates of its own state (`autopilot.in_air_reset` starts the next episode there);
-        SessionError where one cannot tell. Kinds with `resets_in_air` answer."""
+        """Held: what each vehicle's autopilot estimates of its own state now
+        (`autopilot.in_air_reset` starts the next episode there); SessionError where one
+        cannot tell. Kinds with `resets_in_air` answer; may advance simulated time a little to
+        observe fresh reports."""
         raise NotImplementedError(f"{type(self).__name__} does not reset in the air")
 
     @abstractmethod

@@ -147,15 +147,8 @@ class Px4Fleet:
 
     def in_air_refusal(self, lockstep: Any, limits: InAirLimits = IN_AIR_LIMITS) -> str:
         """Held: why PX4 cannot fly on into the next episode ('' when every vehicle can; see
-        `in_air`). Reports older than `IN_AIR_FRESH_S` of simulated time are not trusted (the
-        observer's socket may have overflowed while nobody read it): then the lockstep runs
-        `IN_AIR_OBSERVE_S` first for fresh ones."""
-        for autopilot in self.autopilots:
-            autopilot.poll()
-        if lockstep.stats.steps - self._polled_at_step > lockstep.steps_for_rounded(IN_AIR_FRESH_S):
-            lockstep.run_for(IN_AIR_OBSERVE_S)
-        self.check_alive()
-        self._polled_at_step = lockstep.stats.steps
+        `in_air`), from fresh reports (`_observe_fresh`)."""
+        self._observe_fresh(lockstep)
         for index, autopilot in enumerate(self.autopilots):
             obs = autopilot.poll()
             state = lockstep.sim.state(index)
@@ -166,9 +159,22 @@ class Px4Fleet:
                 return f"vehicle {index} (PX4 instance {autopilot.instance}): {reason}"
         return ""
 
+    def _observe_fresh(self, lockstep: Any) -> None:
+        """Held: poll every PX4's reports; where they were last made fresh more than
+        `IN_AIR_FRESH_S` of simulated time ago, first run `IN_AIR_OBSERVE_S` (the observer's
+        socket may have overflowed while nobody read it, keeping old reports and dropping new
+        ones)."""
+        for autopilot in self.autopilots:
+            autopilot.poll()
+        if lockstep.stats.steps - self._polled_at_step > lockstep.steps_for_rounded(IN_AIR_FRESH_S):
+            lockstep.run_for(IN_AIR_OBSERVE_S)
+        self.check_alive()
+        self._polled_at_step = lockstep.stats.steps
+
     def estimates(self, lockstep: Any) -> list[Estimate]:
-        """What each PX4 estimates of its vehicle, read now (call right after an
-        `in_air_refusal`, which leaves the reports fresh)."""
+        """Held: what each PX4 estimates of its vehicle, from fresh reports (as
+        `in_air_refusal`)."""
+        self._observe_fresh(lockstep)
         estimates = []
         for index, autopilot in enumerate(self.autopilots):
             obs, origin = autopilot.poll(), self._origin_offsets[index]

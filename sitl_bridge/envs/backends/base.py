@@ -52,7 +52,8 @@ class EpisodeStart:
     timeout_s: float = 30.0
     """The episode start may take this long before the backend gives up."""
     in_air_stop_speed_m_s: float = 0.1
-    """A reset in the air (kinds that fly on, `px4`) teleports only vehicles this slow ..."""
+    """A reset in the air (kinds that fly on, `px4`) teleports only vehicles this slow (as
+    their autopilots estimate: `SessionBackend._stop_in_air` says why) ..."""
     in_air_stop_rate_rad_s: float = 0.25
     """... and turning slower than this (a vehicle that has just braked still pitches back to
     level; the fleet's own check refuses the reset while it turns, and a refusal costs a

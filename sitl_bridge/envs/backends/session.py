@@ -19,12 +19,12 @@ Reset between episodes, as the kind's fleet says (`AutopilotFleet.resets_in_plac
   matching and MAVSDK all see monotonic time).
 * in the air (`px4`, kinds with `AutopilotFleet.resets_in_air`): PX4 flies on, no reboot, no
   takeoff. The episode's end is held with a zero velocity setpoint until every vehicle is slow
-  (`EPISODE_START.in_air_stop_speed_m_s`), then `autopilot.in_air_reset.reset_in_air` re-spawns the world
-  with every vehicle hovering at the start altitude, PX4's sensors measuring a continuous
-  flight (their position offset takes the jump), and settles `settle_s` under the zero
-  setpoint; observations keep reading the truth. Where PX4 is not in a clean flying state
-  (disarmed, failsafe, landed, crashed, tumbling, estimate off, offset past its bound), or
-  at the first episode, it falls back to:
+  (`EPISODE_START.in_air_stop_speed_m_s`, as its autopilot estimates it), then
+  `autopilot.in_air_reset.reset_in_air` re-spawns the world with every vehicle hovering at
+  the start altitude, PX4's sensors measuring a continuous flight (their position offset
+  takes the jump), and settles `settle_s` under the zero setpoint; observations keep reading
+  the truth. Where PX4 is not in a clean flying state (disarmed, failsafe, landed, crashed,
+  tumbling, estimate off, offset past its bound), or at the first episode, it falls back to:
 * a restart (`px4`: a cold boot is the only reset that clears all of PX4's state): the
   session is restarted, autopilot processes, links and MAVSDK clients, on the same instances.
 
@@ -217,9 +217,9 @@ class SessionBackend:
         session, start = self._session(), EPISODE_START
         step_us = session.step_us
         try:
-            slow = self._stop_in_air()
-            if not slow:
-                self.last_in_air_refusal = "still moving or turning after the stop"
+            moving = self._stop_in_air()
+            if moving:
+                self.last_in_air_refusal = f"still moving or turning after the stop: {moving}"
                 return False
             seeds = [sensor_seed(seed, k) for k in range(self.num_drones)]  # as SimSession.reset
             with session.exclusive():
@@ -240,24 +240,42 @@ class SessionBackend:
         self._collisions.clear()
         return True
 
-    def _stop_in_air(self) -> bool:
-        """Zero velocity setpoints, held until every vehicle is slower than
-        `in_air_stop_speed_m_s` and turns slower than `in_air_stop_rate_rad_s` (at most
-        `in_air_stop_timeout_s` of simulated time)."""
+    def _stop_in_air(self) -> str:
+        """Zero velocity setpoints, held until every vehicle's autopilot estimates it slower
+        than `in_air_stop_speed_m_s` and it turns slower than `in_air_stop_rate_rad_s` (at most
+        `in_air_stop_timeout_s` of simulated time). Returns '' when they are, else which
+        vehicles still move.
+
+        The speed is the estimate's because the reset places each vehicle in the velocity its
+        autopilot estimates (`autopilot.in_air_reset`), and because the controller holds that
+        estimate, not the truth, at zero: after a manoeuvre PX4's estimate is off by up to
+        ~0.1 m/s for seconds, so a true speed can stay above the bound the whole timeout."""
         session, fleet, start = self._session(), self._fleet(), EPISODE_START
         chunk_s = nearest_whole_steps_s(start.in_air_stop_check_s, session.step_us)
         fleet.fly([np.zeros(3)] * self.num_drones, chunk_s)
         waited = chunk_s
         while True:
-            states = [session.vehicle_state(k) for k in range(self.num_drones)]
-            if all(np.linalg.norm(s.velocity_enu_m_s) <= start.in_air_stop_speed_m_s
-                   and np.linalg.norm(s.angular_velocity_flu_rad_s) <= start.in_air_stop_rate_rad_s
-                   for s in states):
-                return True
-            if waited >= start.in_air_stop_timeout_s:
-                return False
+            moving = self._still_moving()
+            if not moving or waited >= start.in_air_stop_timeout_s:
+                return moving
             session.run_for(chunk_s)  # the zero setpoint is still streaming
             waited += chunk_s
+
+    def _still_moving(self) -> str:
+        """Which vehicles are estimated faster or turn faster than the in-air stop allows."""
+        session, start = self._session(), EPISODE_START
+        with session.exclusive():
+            estimates = session.autopilots.estimates(session.lockstep)
+        moving = []
+        for k, estimate in enumerate(estimates):
+            state = session.vehicle_state(k)
+            speed = float(np.linalg.norm(estimate.velocity_ned_m_s))
+            rate = float(np.linalg.norm(state.angular_velocity_flu_rad_s))
+            if speed > start.in_air_stop_speed_m_s or rate > start.in_air_stop_rate_rad_s:
+                true_speed = float(np.linalg.norm(state.velocity_enu_m_s))
+                moving.append(f"vehicle {k} estimated at {speed:.2f} m/s (truth {true_speed:.2f}), "
+                              f"turning at {rate:.2f} rad/s")
+        return "; ".join(moving)
 
     def with_simulation(self, use):  # noqa: ANN001, ANN201 - see Backend.with_simulation
         """`use(simulation)` with the session's runner thread off the lockstep."""
