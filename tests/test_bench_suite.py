@@ -14,7 +14,7 @@ import pytest
 
 
 def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
-    from sitl_bridge.bench.suite import KEYS
+    from sitl_bridge.bench.suite import KEYS, SIZES
 
     monkeypatch.delenv("PX4_BIN", raising=False)
     out = tmp_path / "bench.json"
@@ -34,6 +34,10 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
         assert entry["fraction_of_bare"]["median"] == entry["rtf"]["median"] / entry["bare_rtf_adjacent"], key
     assert result["train_steps_per_s"]["updates"] > 0  # DQN updates were part of the timing
     assert set(result["reset_s"]) == {"direct", "stub"}
+    for key in ("direct", "stub"):  # each reset after an ended episode of the random flight, timed
+        resets = result[key]["episode_reset_s"]
+        assert resets["count"] >= SIZES["smoke"].episode_resets, key
+        assert 0 < resets["median"] <= resets["p95"] <= resets["max"], key
     parallel = result["parallel"]
     assert parallel["speedup_2_over_1"] > 0 and parallel["bare_speedup_2_over_1"] > 0
     assert parallel["fraction_of_bare_speedup"] == parallel["speedup_2_over_1"] / parallel["bare_speedup_2_over_1"]

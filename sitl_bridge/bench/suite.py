@@ -19,7 +19,13 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   costs ~1.2 s, so the figure depends on how many fell into the timed repetitions).
 * `px4_standby`: the same with `standby=True` (a standby PX4 takes over where the flying one
   cannot fly on; `episode_starts.handovers`).
-* `reset_s`: wall seconds per `reset()` for each backend measured (median, min, max).
+* `reset_s`: wall seconds per `reset()` for each backend measured (median, min, max), called
+  again right after a reset (nothing flown in between).
+* `episode_reset_s` (in every single-env case): the effective reset between episodes, wall
+  seconds from the end of an episode of the random flight to the first action of the next
+  (the `reset()` after it): count, median, p95, max over at least `Size.episode_resets` ended
+  episodes, warm-up and timed repetitions included (the flight goes on after them until
+  there are that many).
 * `train_steps_per_s`: DQN training env steps per wall second, updates included (thesis O
   settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
 * `parallel`: `direct` envs in 1 and 2 worker processes, aggregate real-time factor and the
@@ -74,6 +80,8 @@ class Size:
     bare_s: float
     num_envs: int
     resets: int
+    episode_resets: int
+    """Ended episodes whose reset `episode_reset_s` times, at least."""
     train_episodes: int
     parallel_window_s: float
     """Wall seconds of each of `parallel`'s `reps` timed windows (all workers run the whole window)."""
@@ -82,14 +90,19 @@ class Size:
 
 
 SIZES = {
-    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 40, 5.0, 15.0),
-    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 12, 2.0, 6.0),
-    "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 2, 0.1, 0.5),  # for the test: seconds, figures meaningless
+    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 50, 40, 5.0, 15.0),
+    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 10, 12, 2.0, 6.0),
+    "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 1, 2, 0.1, 0.5),  # for the test: seconds, figures meaningless
 }
 
 
 def _spread(values: list[float]) -> dict[str, float]:
     return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+
+
+def _distribution(values: list[float]) -> dict[str, float]:
+    return {"count": len(values), "median": statistics.median(values),
+            "p95": float(np.percentile(values, 95)), "max": max(values)}
 
 
 def _rtf_entry(rtfs: list[float], bare: float, **extra: Any) -> dict[str, Any]:
@@ -151,19 +164,23 @@ def _cpu_ms_per_step(before: tuple[float, float | None], after: tuple[float, flo
 
 class _RandomFlight:
     """One random action per call (resets included: training pays for them too); returns the
-    simulated seconds it flew. Counts the episodes it ended (`episodes_ended`)."""
+    simulated seconds it flew. Counts the episodes it ended (`episodes_ended`) and times the
+    reset after each (`episode_reset_s`)."""
 
     def __init__(self, env: Any, seed: int = 0) -> None:
         self.env = env
         self.rng = np.random.default_rng(seed)
         self.step_s = env.scenario.task.action.step_s
         self.episodes_ended = 0
+        self.episode_reset_s: list[float] = []
 
     def __call__(self) -> float:
         _, _, terminated, truncated, _ = self.env.step(int(self.rng.integers(8)))
         if terminated or truncated:
             self.episodes_ended += 1
+            t0 = time.perf_counter()
             self.env.reset()
+            self.episode_reset_s.append(time.perf_counter() - t0)
         return self.step_s
 
 
@@ -199,6 +216,8 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
         rtfs = [_fly(step, size.sim_s) for _ in range(size.reps)]
         cpu = _cpu_ms_per_step(before, _cpu_s(), size.reps * size.sim_s / _step_s())
         starts = _episode_starts(counts, _ended_and_in_air(step))
+        while len(step.episode_reset_s) < size.episode_resets:
+            step()
         resets = []
         for _ in range(size.resets):
             t0 = time.perf_counter()
@@ -206,7 +225,9 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
             resets.append(time.perf_counter() - t0)
     finally:
         env.close()
-    extra = {"cpu_ms_per_step": cpu} if backend != "direct" and cpu is not None else {}
+    extra: dict[str, Any] = {"episode_reset_s": _distribution(step.episode_reset_s)}
+    if backend != "direct" and cpu is not None:
+        extra["cpu_ms_per_step"] = cpu
     if backend == "px4":
         extra["episode_starts"] = starts
     if standby:
@@ -493,6 +514,10 @@ def _summary(figures: dict[str, Any]) -> str:
         handed = f" ({starts['handovers']} by the standby)" if starts["handovers"] else ""
         text += (f"; {starts['episodes_ended']} episodes ended: {starts['in_air']} next started in the air{handed}, "
                  f"{starts['restarts']} by a restart")
+    if "episode_reset_s" in figures:
+        resets = figures["episode_reset_s"]
+        text += (f"; reset after an episode {resets['median']:.3f} s median, p95 {resets['p95']:.3f} s "
+                 f"({resets['count']} resets)")
     return text
 
 
