@@ -46,20 +46,6 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     assert cpu["this_process"] > 0 and cpu["total"] == cpu["this_process"] + cpu["children"]
 
 
-def test_px4_ceiling_is_the_cores_over_what_one_env_keeps_busy(monkeypatch) -> None:
-    from sitl_bridge.bench import suite
-
-    monkeypatch.setattr(suite.os, "cpu_count", lambda: 2)
-    result = {"px4": {"steps_per_s": {"median": 15.0}, "cpu_ms_per_step": {"total": 80.0}},
-              "px4_parallel": {"workers_1": {}}}
-    suite._px4_ceiling(result)
-    assert result["px4_parallel"]["cores_busy_per_env"] == pytest.approx(1.2)   # 15/s x 80 ms
-    assert result["px4_parallel"]["cpu_bound_speedup"] == pytest.approx(2 / 1.2)
-    result["px4"]["cpu_ms_per_step"]["total"] = 20.0                             # 0.3 cores: 2x at most
-    suite._px4_ceiling(result)
-    assert result["px4_parallel"]["cpu_bound_speedup"] == 2.0
-
-
 def test_cpu_time_counts_live_grandchildren() -> None:
     """With `standby=True` PX4 runs under the backend's worker processes: the CPU per env step
     must count their children too, while they are still running."""

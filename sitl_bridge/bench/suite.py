@@ -35,11 +35,9 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   same `window_s` wall seconds, started together, `reps` windows after one start.
 * `px4_parallel`: the same with `px4` envs, each worker its own PX4 instance (each worker's env
   claims one in 0..9 through `autopilot.allocation`, never shared; `instances` says which), in env steps per
-  wall second (`steps_per_s`): one PX4-backed env process against two at once, `reps` timed
-  windows after one PX4 start per worker. Needs `PX4_BIN`, else `{"skipped": reason}`.
-  `cpu_bound_speedup`: the most two workers could give on this machine's cores: one px4 env
-  keeps `cores_busy_per_env` = steps/s x CPU time per env step busy (the `px4` case's
-  `cpu_ms_per_step`: this process, the simulator and MAVSDK, plus its child processes, PX4).
+  wall second (`steps_per_s`): one PX4-backed env process against two at once, each of the two
+  on its own core as a sweep's workers are (`cores`; `pinned`), `reps` timed windows after one
+  PX4 start per worker. Needs `PX4_BIN`, else `{"skipped": reason}`.
 """
 
 from __future__ import annotations
@@ -61,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from sitl_bridge.bench.physics import STEP_US, bare_pybullet_rtf, bare_world
+from sitl_bridge.cores import pin_to_own_core, pins_workers
 from sitl_bridge.data_paths import worlds_dir
 from sitl_bridge.physics.bullet import p
 
@@ -304,14 +303,17 @@ def _fly_windows(step: Callable[[], float], windows: int, window_s: float, barri
         results.put((window, flown, start, time.perf_counter(), instances))
 
 
-def _parallel_worker(options: dict[str, Any], windows: int, window_s: float,
-                     warmup_s: float, index: int, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
+def _parallel_worker(options: dict[str, Any], windows: int, window_s: float, warmup_s: float, pin: bool,
+                     index: int, barrier, results) -> None:  # noqa: ANN001 - multiprocessing proxies
     """Fly one env with `options` (`EnvOptions` fields) in this worker process (seeded with the
-    worker's `index`, so worker 0 flies the same episodes whether alone or with others): warm
-    up, then `_fly_windows`; puts ("failed", text) once if anything fails."""
+    worker's `index`, so worker 0 flies the same episodes whether alone or with others; with
+    `pin`, on its own core: `cores`): warm up, then `_fly_windows`; puts ("failed", text) once
+    if anything fails."""
     from sitl_bridge.envs import make_env
 
     env = None
+    if pin:
+        pin_to_own_core(index)
     try:
         # session backends claim their own instances (autopilot.allocation): nothing handed in
         env = make_env(_scenario(), speed_factor=0.0, seed=index, **options)
@@ -383,7 +385,8 @@ def _parallel_rtf(workers: int, size: Size, window_s: float,
                   **options: Any) -> tuple[list[float], list[tuple[int, ...]]]:
     """`_windows_rtf` of `workers` env worker processes with env `options` (default `direct`),
     `size.reps` windows after one start each."""
-    return _windows_rtf(_parallel_worker, (options, size.reps, window_s, size.warmup_s), workers, size.reps)
+    pin = pins_workers(options.get("autopilot", "direct"), workers)  # as a sweep of such runs does
+    return _windows_rtf(_parallel_worker, (options, size.reps, window_s, size.warmup_s, pin), workers, size.reps)
 
 
 def _parallel_case(size: Size, bare: float) -> dict[str, Any]:
@@ -410,7 +413,8 @@ def _px4_parallel_case(size: Size, bare: float, px4_bin: str) -> dict[str, Any]:
         rtfs, instances = _parallel_rtf(workers, size, size.px4_parallel_window_s, autopilot="px4", px4_bin=px4_bin)
         steps = [rtf / step_s for rtf in rtfs]
         entries[f"workers_{workers}"] = _rtf_entry(rtfs, bare, steps_per_s=_spread(steps),
-                                                   instances=[list(i) for i in instances])
+                                                   instances=[list(i) for i in instances],
+                                                   pinned=pins_workers("px4", workers))
     speedup = entries["workers_2"]["rtf"]["median"] / entries["workers_1"]["rtf"]["median"]
     return {**entries, "speedup_2_over_1": speedup, "step_s": step_s, "window_s": size.px4_parallel_window_s,
             "cpu_count": os.cpu_count()}
@@ -468,26 +472,9 @@ def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
         result[key] = figures
         log(f"  {key}: {_summary(figures)}  ({time.perf_counter() - t0:.0f} s)")
     result["reset_s"] = resets
-    _px4_ceiling(result)
-    if "cpu_bound_speedup" in result.get("px4_parallel", {}):
-        ceiling = result["px4_parallel"]
-        log(f"  px4_parallel: one px4 env keeps {ceiling['cores_busy_per_env']:.2f} cores busy: two can go at "
-            f"most {ceiling['cpu_bound_speedup']:.2f}x as fast on these {os.cpu_count()} cores")
     result["physics"] = _rtf_entry(bares, statistics.median(bares))  # every bare measurement of the run
     log("  reset_s: " + ", ".join(f"{k} {v['median']:.3f} s" for k, v in resets.items()))
     return result
-
-
-def _px4_ceiling(result: dict[str, Any]) -> None:
-    """`px4_parallel.cpu_bound_speedup`: one px4 env keeps `steps/s x CPU s per step` cores busy
-    (the `px4` case, one measurement); two can go at most `cores / that` times as fast (<= 2)."""
-    single, parallel = result.get("px4", {}), result.get("px4_parallel", {})
-    cpu = single.get("cpu_ms_per_step")
-    if not cpu or "workers_1" not in parallel:
-        return
-    busy_cores = single["steps_per_s"]["median"] * cpu["total"] / 1e3
-    parallel["cores_busy_per_env"] = busy_cores
-    parallel["cpu_bound_speedup"] = min(2.0, (os.cpu_count() or 1) / busy_cores)
 
 
 def _summary(figures: dict[str, Any]) -> str:

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sitl_bridge.cores import pin_next_core, pins_workers, pool_pinning
 from sitl_bridge.rl.atomic import atomic_write_json, atomic_write_text
 from sitl_bridge.rl.experiment import (
     ComparisonSpec,
@@ -120,12 +121,17 @@ def evaluate_run(task: EvalTask) -> dict[str, Any]:
 
 
 def evaluate_runs(tasks: list[EvalTask], workers: int) -> list[dict[str, Any]]:
-    """Every task's evaluation, in order; in `workers` fresh processes when more than one."""
+    """Every task's evaluation, in order; in `workers` fresh processes when more than one (each
+    on its own core where they fly PX4: `cores.pins_workers`)."""
     if workers <= 1 or len(tasks) <= 1:
         return [evaluate_run(t) for t in tasks]
     import multiprocessing as mp
 
-    with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=mp.get_context("spawn")) as pool:
+    ctx = mp.get_context("spawn")
+    workers = min(workers, len(tasks))
+    pin = all(pins_workers(task.autopilot, workers) for task in tasks)
+    pinning = {"initializer": pin_next_core, "initargs": (pool_pinning(ctx),)} if pin else {}
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, **pinning) as pool:
         return list(pool.map(evaluate_run, tasks))
 
 

@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from sitl_bridge.cores import pin_next_core, pins_workers, pool_pinning
 from sitl_bridge.errors import ConfigError, load_yaml
 from sitl_bridge.lifetime import die_with_parent
 from sitl_bridge.rl.config import apply_overrides, load_train_config
@@ -240,18 +241,25 @@ def _train_supervised(job: SweepJob) -> SweepResult:
 
 
 # -- local processes ------------------------------------------------------------------------
-def _init_worker() -> None:
+def _init_worker(core_counter: Any = None) -> None:
     """End this worker process with the sweep (a killed sweep must not leave runs training on
-    with nobody to collect them)."""
+    with nobody to collect them); with a counter, pin it to its own core (`cores`)."""
     die_with_parent()
+    if core_counter is not None:
+        pin_next_core(core_counter)
 
 
 def run_local(jobs: list[SweepJob], workers: int,
               on_result: Callable[[SweepResult], None] | None = None) -> list[SweepResult]:
-    """Run `jobs` in `workers` fresh processes; results in job order."""
+    """Run `jobs` in `workers` fresh processes, each on its own core where the runs fly PX4
+    (`cores.pins_workers`); results in job order."""
     ctx = mp.get_context("spawn")  # fresh interpreters: no pybullet/torch state inherited
     results: dict[int, SweepResult] = {}
-    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, initializer=_init_worker) as pool:
+    workers = max(1, workers)
+    pin = all(pins_workers(job.autopilot, workers) for job in jobs)
+    counter = (pool_pinning(ctx),) if jobs and pin else ()
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=counter) as pool:
         futures = {pool.submit(run_job, job): job for job in jobs}
         for future in as_completed(futures):
             job = futures[future]
