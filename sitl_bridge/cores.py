@@ -16,6 +16,7 @@ is Linux's `sched_setaffinity`; elsewhere nothing is pinned.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from typing import Any
 
 PINNED_KINDS = ("px4",)
@@ -45,14 +46,18 @@ def pin_to_own_core(index: int) -> int | None:
     return core
 
 
-def pool_pinning(ctx: Any) -> Any:
-    """A counter for `pin_next_core` in the workers of a process pool made with the
-    multiprocessing context `ctx` (passed as the pool initializer's argument)."""
-    return ctx.Value("i", 0)
+def core_counter(ctx: Any, autopilots: Iterable[str], workers: int) -> Any:
+    """For a process pool of `workers` made with the multiprocessing context `ctx`, its tasks
+    flying `autopilots`: the argument of its initializer's `pin_next_core` (a shared counter
+    where every task's kind pins, `pins_workers`; else None: nothing pinned)."""
+    return ctx.Value("i", 0) if all(pins_workers(kind, workers) for kind in autopilots) else None
 
 
 def pin_next_core(counter: Any) -> int | None:
-    """In a pool worker (its initializer): pin it to the next core in turn (`pool_pinning`)."""
+    """In a pool worker (its initializer): pin it to the next core in turn (`core_counter`;
+    None: not pinned)."""
+    if counter is None:
+        return None
     with counter.get_lock():
         index = counter.value
         counter.value += 1

@@ -9,7 +9,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
-from sitl_bridge.cores import pin_next_core, pins_workers, pool_pinning, usable_cores
+from sitl_bridge.cores import core_counter, pin_next_core, pins_workers, usable_cores
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="pinning is Linux's")
 
@@ -32,7 +32,7 @@ def test_each_pool_worker_pins_itself_to_its_own_core() -> None:
     ctx = mp.get_context("spawn")
     workers = min(2, len(cores))
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=pin_next_core,
-                             initargs=(pool_pinning(ctx),)) as pool:
+                             initargs=(core_counter(ctx, ["px4"], workers),)) as pool:
         seen = set(pool.map(_affinity, [0.1] * 8 * workers))
     assert all(len(mask) == 1 for mask in seen)  # every task ran on one core ...
     assert len(seen) == workers  # ... its worker's own

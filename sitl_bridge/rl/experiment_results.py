@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sitl_bridge.cores import pin_next_core, pins_workers, pool_pinning
+from sitl_bridge.cores import core_counter, pin_next_core
 from sitl_bridge.rl.atomic import atomic_write_json, atomic_write_text
 from sitl_bridge.rl.experiment import (
     ComparisonSpec,
@@ -129,9 +129,9 @@ def evaluate_runs(tasks: list[EvalTask], workers: int) -> list[dict[str, Any]]:
 
     ctx = mp.get_context("spawn")
     workers = min(workers, len(tasks))
-    pin = all(pins_workers(task.autopilot, workers) for task in tasks)
-    pinning = {"initializer": pin_next_core, "initargs": (pool_pinning(ctx),)} if pin else {}
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, **pinning) as pool:
+    counter = core_counter(ctx, [task.autopilot for task in tasks], workers)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=pin_next_core,
+                             initargs=(counter,)) as pool:
         return list(pool.map(evaluate_run, tasks))
 
 

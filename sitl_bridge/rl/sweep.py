@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sitl_bridge.cores import pin_next_core, pins_workers, pool_pinning
+from sitl_bridge.cores import core_counter, pin_next_core
 from sitl_bridge.errors import ConfigError, load_yaml
 from sitl_bridge.lifetime import die_with_parent
 from sitl_bridge.rl.config import apply_overrides, load_train_config
@@ -245,8 +245,7 @@ def _init_worker(core_counter: Any = None) -> None:
     """End this worker process with the sweep (a killed sweep must not leave runs training on
     with nobody to collect them); with a counter, pin it to its own core (`cores`)."""
     die_with_parent()
-    if core_counter is not None:
-        pin_next_core(core_counter)
+    pin_next_core(core_counter)
 
 
 def run_local(jobs: list[SweepJob], workers: int,
@@ -256,10 +255,9 @@ def run_local(jobs: list[SweepJob], workers: int,
     ctx = mp.get_context("spawn")  # fresh interpreters: no pybullet/torch state inherited
     results: dict[int, SweepResult] = {}
     workers = max(1, workers)
-    pin = all(pins_workers(job.autopilot, workers) for job in jobs)
-    counter = (pool_pinning(ctx),) if jobs and pin else ()
+    counter = core_counter(ctx, [job.autopilot for job in jobs], workers) if jobs else None
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                             initargs=counter) as pool:
+                             initargs=(counter,)) as pool:
         futures = {pool.submit(run_job, job): job for job in jobs}
         for future in as_completed(futures):
             job = futures[future]
