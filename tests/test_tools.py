@@ -1,4 +1,4 @@
-"""The README's tool commands work from any working directory of a clone."""
+"""The documented tool commands (docs/benchmarks.md) work from any working directory of a clone."""
 
 from __future__ import annotations
 
