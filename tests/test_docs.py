@@ -69,7 +69,8 @@ def test_strict_build_fails_on_a_broken_link_and_a_missing_page(tmp_path: Path) 
     config = yaml.safe_load((ROOT / "mkdocs.yml").read_text())
     config["docs_dir"] = str(docs)
     config["hooks"] = [str(ROOT / "docs" / "hooks" / "scenario_manuals.py")]
-    config["plugins"][1]["mkdocstrings"]["handlers"]["python"]["paths"] = [str(ROOT)]
+    (mkdocstrings,) = [p["mkdocstrings"] for p in config["plugins"] if isinstance(p, dict) and "mkdocstrings" in p]
+    mkdocstrings["handlers"]["python"]["paths"] = [str(ROOT)]
     (tmp_path / "mkdocs.yml").write_text(yaml.safe_dump(config))
     result = _mkdocs_build(tmp_path / "mkdocs.yml", tmp_path / "site")
     output = result.stdout + result.stderr
