@@ -79,3 +79,21 @@ def test_watchdog_stops_after_max_restarts_per_hour(tmp_path: Path) -> None:
 def test_resume_argv_keeps_only_what_resume_accepts() -> None:
     argv = ["worlds/empty.yaml", "--out", "runs", "--episodes", "9", "--seed", "3", "--no-progress", "--gamma=0.9"]
     assert _resume_argv(argv, Path("runs/x")) == ["--resume", "runs/x", "--episodes", "9", "--no-progress"]
+
+
+def test_an_evaluation_longer_than_the_freeze_timeout_is_no_freeze(tmp_path: Path) -> None:
+    """The heartbeat beats inside the periodic evaluation and the constant-action baseline (8
+    actions x the evaluation's episodes), each far longer than the freeze timeout here."""
+    cmd = [sys.executable, "-m", "sitl_bridge", "train", "worlds/empty.yaml", "--watchdog", "--out", str(tmp_path),
+           "--episodes", "2", "--eval-every", "1", "--eval-episodes", "12", "--no-progress",
+           "--freeze-timeout", "3", "--max-restarts-per-hour", "0"]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=400,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 0, proc.stderr
+    assert "watchdog: 0 restart(s)" in proc.stderr
+    (run_dir,) = tmp_path.glob("*/")
+    assert not (run_dir / "watchdog.jsonl").exists()
+    evals = [json.loads(line) for line in (run_dir / "evals.jsonl").read_text().splitlines()]
+    assert [e["after_episodes"] for e in evals] == [1, 2]  # the periodic one and the final one
+    assert (run_dir / "baseline.json").is_file()
+    assert read_heartbeat(run_dir)["phase"] == "greedy evaluation 12/12"  # the final evaluation's last beat

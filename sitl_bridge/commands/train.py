@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import errno
 import sys
-from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from sitl_bridge.commands import add_env_autopilot_argument
@@ -63,17 +62,6 @@ def _run_watchdog(args: argparse.Namespace) -> int:
     return report.exit_code
 
 
-def _heartbeat(trainer: Trainer) -> Callable[[object], None]:
-    """Write the run's heartbeat now and after every episode (for a watchdog)."""
-    from sitl_bridge.rl.heartbeat import write_heartbeat
-
-    def beat(_records: object = None) -> None:
-        write_heartbeat(trainer.run_dir, trainer.episode, trainer.global_step)
-
-    beat()
-    return beat
-
-
 def main(args: argparse.Namespace) -> int:
     if args.watchdog:
         return _run_watchdog(args)
@@ -102,7 +90,7 @@ def _train(args: argparse.Namespace) -> int:
         resumed = trainer.episode > 0
         print(f"run directory: {trainer.run_dir}" + (f" (resuming after episode {trainer.episode})"
                                                      if resumed else ""), file=sys.stderr)
-        result = trainer.train(on_episode=_heartbeat(trainer))
+        result = trainer.train()
         print(f"this session: {result.episodes_this_session} episodes ({result.steps_this_session} steps) in "
               f"{result.wall_time_s:.1f} s; run total: {result.episodes} of {trainer.config.episodes} episodes "
               f"({result.global_step} steps); success while exploring (last {trainer.config.success_window} "
@@ -113,7 +101,8 @@ def _train(args: argparse.Namespace) -> int:
                   f"constant action ({baseline.action}: {baseline.success_rate:.0%})")
             print("greedy evaluation: " + trainer.last_eval.summary())
         elif result.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0:
-            print("greedy evaluation: " + trainer.evaluate().summary())
+            final = trainer.recorded_evaluation() or trainer.evaluate()  # done before a kill: not again
+            print("greedy evaluation: " + final.summary())
     return 0
 
 
@@ -128,7 +117,7 @@ def _build(args: argparse.Namespace) -> Trainer:
         if any(v is not None for k, v in overrides.items() if k != "episodes"):
             raise ConfigError("command line: only --episodes can change when resuming (the run's "
                               "config.yaml holds its hyperparameters)")
-        return Trainer.resume(args.resume, episodes=overrides["episodes"], progress=progress)
+        return Trainer.resume(args.resume, episodes=overrides["episodes"], progress=progress, heartbeat=True)
     if not args.world:
         raise ConfigError("command line: WORLD: expected a scenario file (or --resume RUN_DIR), got nothing")
     from sitl_bridge.rl.scenario_file import check_scenario_file
@@ -145,4 +134,4 @@ def _build(args: argparse.Namespace) -> Trainer:
     spec = RunSpec(world=args.world, autopilot=args.autopilot, seed=args.seed, init_from=args.init_from,
                    standby=args.standby)
     factory = scenario_env_factory(args.world, args.autopilot, **({"standby": True} if args.standby else {}))
-    return Trainer.start(args.out, spec, config, factory, progress=progress)
+    return Trainer.start(args.out, spec, config, factory, progress=progress, heartbeat=True)

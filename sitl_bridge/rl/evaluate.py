@@ -69,9 +69,11 @@ def evaluate_policy(policy: Callable[[np.ndarray], int], env_factory: EnvFactory
 
 def evaluate_on(env: DronesEnv, policy: Callable[[np.ndarray], int], *, world: str, episodes: int,
                 seed: int = 0, progress: bool = False, desc: str = "evaluation",
-                videos: Any = None, flown: Sequence[Trace] = ()) -> tuple[EvalResult, list[Trace]]:
+                videos: Any = None, flown: Sequence[Trace] = (),
+                beat: Callable[[str], None] | None = None) -> tuple[EvalResult, list[Trace]]:
     """Fly `policy` greedily for `episodes` episodes on evaluation seeds in an open env
-    (with `progress`, a bar or periodic lines on stderr; with `videos`, recorded).
+    (with `progress`, a bar or periodic lines on stderr; with `videos`, recorded; `beat`
+    is called after each episode with e.g. "evaluation 3/100": a training run's heartbeat).
 
     `flown`: the traces of a shorter evaluation of the same policy on the same seeds, which this
     one extends: only the episodes after them are flown (greedy flights are deterministic, so
@@ -80,6 +82,8 @@ def evaluate_on(env: DronesEnv, policy: Callable[[np.ndarray], int], *, world: s
     with Progress(episodes - done, desc, enabled=progress) as bar:
         def count(traces: list[Trace]) -> None:
             bar.update(1, success=f"{np.mean([t.outcome == 'goal' for t in traces]):.0%}")
+            if beat is not None:
+                beat(f"{desc} {done + traces[0].episode + 1}/{episodes}")
 
         traces = rollout(env, policy, eval_seeds(seed, episodes)[done:], on_episode=count, videos=videos)
     for trace in traces:  # numbered within the whole evaluation
@@ -102,13 +106,15 @@ class ConstantBaseline:
 
 
 def constant_action_baseline(env: DronesEnv, *, world: str, episodes: int, seed: int = 0,
-                             progress: bool = False) -> ConstantBaseline:
+                             progress: bool = False,
+                             beat: Callable[[str], None] | None = None) -> ConstantBaseline:
     """Success of every constant-action policy on the evaluation episodes of `evaluate_on`
-    (same seeds), and the best of them. A scenario that a constant action solves needs no learning."""
+    (same seeds), and the best of them (`beat` as in `evaluate_on`). A scenario that a constant
+    action solves needs no learning."""
     rates = []
     for action in range(env.n_actions):
         result, _ = evaluate_on(env, lambda _obs, a=action: a, world=world, episodes=episodes, seed=seed,
-                                progress=progress, desc=f"constant action {action}")
+                                progress=progress, desc=f"constant action {action}", beat=beat)
         rates.append(result.success_rate)
     best = int(np.argmax(rates))
     return ConstantBaseline(best, rates[best], rates)

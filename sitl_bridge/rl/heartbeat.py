@@ -1,7 +1,8 @@
 """Training heartbeat: a small JSON file in the run directory that a watchdog reads.
 
-Written atomically after every episode (cheap: one small file); a watchdog that sees no new
-heartbeat for T seconds treats the learner/simulator as frozen.
+Written atomically after every training episode and after every episode of an evaluation or of
+the constant-action baseline (cheap: one small file), naming the phase, so a watchdog that sees
+no new heartbeat for T seconds knows the learner/simulator is frozen, not busy evaluating.
 """
 
 from __future__ import annotations
@@ -15,13 +16,17 @@ from typing import Any
 from sitl_bridge.rl.atomic import atomic_write_json
 
 HEARTBEAT_FILE = "heartbeat.json"
+TRAINING = "training"
+"""The phase of a heartbeat written between training episodes."""
 
 
-def write_heartbeat(run_dir: str | Path, episode: int, global_step: int) -> None:
-    """Record that training is alive at `episode`; `global_step` (environment steps) is the
-    simulated-time counter, `wall_time` and `pid` tell a watchdog who beat and when."""
+def write_heartbeat(run_dir: str | Path, episode: int, global_step: int, phase: str = TRAINING) -> None:
+    """Record that training is alive at `episode`, doing `phase` (`training`, or e.g.
+    `evaluation 3/100`); `global_step` (environment steps) is the simulated-time counter,
+    `wall_time` and `pid` tell a watchdog who beat and when."""
     atomic_write_json(Path(run_dir) / HEARTBEAT_FILE, {
-        "episode": episode, "global_step": global_step, "wall_time": time.time(), "pid": os.getpid()})
+        "episode": episode, "global_step": global_step, "phase": phase, "wall_time": time.time(),
+        "pid": os.getpid()})
 
 
 def read_heartbeat(run_dir: str | Path) -> dict[str, Any] | None:

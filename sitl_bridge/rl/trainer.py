@@ -44,6 +44,7 @@ from sitl_bridge.rl.drones_env import DronesEnv, EnvFactory, StepResult
 from sitl_bridge.rl.early_end import EarlyEndWatch
 from sitl_bridge.rl.episode_log import EpisodeLog, EpisodeRecord, read_records
 from sitl_bridge.rl.episode_tally import EpisodeTally
+from sitl_bridge.rl.eval_journal import drop_evaluations_after, recorded_evaluation
 from sitl_bridge.rl.evaluate import (
     ConstantBaseline,
     EvalResult,
@@ -51,6 +52,7 @@ from sitl_bridge.rl.evaluate import (
     evaluate_on,
 )
 from sitl_bridge.rl.exploration import RepeatedExploration
+from sitl_bridge.rl.heartbeat import TRAINING, write_heartbeat
 from sitl_bridge.rl.metrics import TensorBoardLog
 from sitl_bridge.rl.nstep import NStepFolder, Step
 from sitl_bridge.rl.prioritized import Priorities
@@ -108,8 +110,12 @@ class Trainer:
     """Trains one run; build with `Trainer.start(...)` or `Trainer.resume(...)`."""
 
     def __init__(self, run_dir: Path, spec: rd.RunSpec, config: TrainConfig, env_factory: EnvFactory,
-                 *, progress: bool = True, warn: Callable[[str], None] | None = None) -> None:
+                 *, progress: bool = True, warn: Callable[[str], None] | None = None,
+                 heartbeat: bool = False) -> None:
         self.run_dir = Path(run_dir)
+        self.heartbeat = heartbeat
+        """Write `heartbeat.json` (rl/heartbeat.py) between training episodes and after each
+        evaluation and baseline episode, for a watchdog."""
         self.spec = spec
         self.config = config
         self.progress = progress
@@ -152,6 +158,9 @@ class Trainer:
         """True when a greedy evaluation reached `stop_on_success` (the run counts as done)."""
         self.last_eval: EvalResult | None = None
         """The latest greedy evaluation of this session."""
+        self.evaluation_due = False
+        """The state checkpointed last is one that gets a periodic evaluation (kept in the
+        checkpoint, so a run killed during that evaluation flies it again on resume)."""
 
     # -- construction -------------------------------------------------------------------
     @classmethod
@@ -281,6 +290,7 @@ class Trainer:
             "log_bytes": log_bytes,
             "log_sha256": self.episode_log.digest(),
             "recent_success": [bool(s) for s in self.recent_success],
+            "evaluation_due": self.evaluation_due,
             "rng": {"python": [version, list(internal), gauss],
                     "numpy": self.rng.bit_generator.state},
         }
@@ -316,6 +326,8 @@ class Trainer:
         self.updates = state["updates"]
         self.epsilon_max = state["epsilon_max"]
         self.recent_success.extend(state["recent_success"])
+        self.evaluation_due = bool(state.get("evaluation_due", False))
+        drop_evaluations_after(self.run_dir / rd.EVALS_FILE, self.episode)  # flown again from here
         version, internal, gauss = state["rng"]["python"]
         random.setstate((version, tuple(internal), gauss))
         self.rng.bit_generator.state = state["rng"]["numpy"]
@@ -352,23 +364,26 @@ class Trainer:
         first_episode, first_step = self.episode, self.global_step
         bar = Progress(self.config.episodes, Path(self.spec.world).stem, initial=self.episode,
                        enabled=self.progress)
+        self.beat()
         try:
-            while self.episode < self.config.episodes:
+            # A session killed during the periodic evaluation of its last checkpoint left it
+            # undone: fly it now, so the run goes on exactly as an uninterrupted one.
+            self.stopped_early = self.evaluation_due and self._periodic_evaluation(bar)
+            while self.episode < self.config.episodes and not self.stopped_early:
                 before = self.episode
                 records = self.run_episodes()
+                every = self.config.eval_every
+                self.evaluation_due = bool(every and self.config.eval_episodes
+                                           and before // every != self.episode // every
+                                           and self.episode < self.config.episodes)
                 self.save_checkpoint()
+                self.beat()
                 self._log_tensorboard(records)
                 bar.update(self.episode - before, explore_success=f"{self.success_rate():.2f}",
                            epsilon=f"{records[0].epsilon:.3f}")
-                every = self.config.eval_every
-                if (every and self.config.eval_episodes and before // every != self.episode // every
-                        and self.episode < self.config.episodes):
-                    result = self.evaluate()
-                    baseline = self.constant_baseline()  # measured once per run, then read back
-                    bar.update(0, greedy=f"{result.success_rate:.0%}", constant_best=f"{baseline.success_rate:.0%}")
-                    if self.solved(result):
-                        self.stopped_early = True
-                        break
+                if self.evaluation_due and self._periodic_evaluation(bar):
+                    self.stopped_early = True
+                    break
                 if on_episode is not None and on_episode(records) is False:
                     break
         finally:
@@ -377,6 +392,20 @@ class Trainer:
                 self._writer.flush()
         return TrainResult(self.run_dir, self.episode, self.global_step, self.episode - first_episode,
                            self.global_step - first_step, time.perf_counter() - start, self.success_rate())
+
+    def _periodic_evaluation(self, bar: Progress) -> bool:
+        """The greedy evaluation of the state just checkpointed (read back when an earlier
+        session finished it) and the constant-action baseline; True when it solves the scenario."""
+        result = self.recorded_evaluation() or self.evaluate()
+        self.last_eval = result
+        baseline = self.constant_baseline()  # measured once per run, then read back
+        bar.update(0, greedy=f"{result.success_rate:.0%}", constant_best=f"{baseline.success_rate:.0%}")
+        return self.solved(result)
+
+    def recorded_evaluation(self) -> EvalResult | None:
+        """The evaluation of the current state that `evals.jsonl` already holds, if any (a
+        resumed session does not fly it again)."""
+        return recorded_evaluation(self.run_dir / rd.EVALS_FILE, self.episode, self.global_step)
 
     def solved(self, result: EvalResult) -> bool:
         """A greedy evaluation solves the scenario when it reaches `stop_on_success` and beats
@@ -393,7 +422,7 @@ class Trainer:
             with contextlib.suppress(ValueError, KeyError, TypeError):
                 return ConstantBaseline(**json.loads(path.read_text()))
         baseline = constant_action_baseline(self.env, world=self.spec.world, episodes=self.config.eval_episodes,
-                                            seed=self.spec.seed, progress=self.progress)
+                                            seed=self.spec.seed, progress=self.progress, beat=self.beat)
         atomic_write_json(path, baseline.to_dict())
         if self.config.stop_on_success and baseline.success_rate >= self.config.stop_on_success:
             self.warn(f"always choosing action {baseline.action} already succeeds in "
@@ -415,8 +444,9 @@ class Trainer:
         record = {**result.to_dict(), "after_episodes": self.episode, "global_step": self.global_step,
                   "wall_time_s": time.perf_counter() - start, "cpu_time_s": time.process_time() - cpu_start}
         atomic_write_json(self.run_dir / rd.EVAL_FILE, record)
-        append_durably(self.run_dir / rd.EVALS_FILE, (json.dumps(record) + "\n").encode())
         self._keep_if_best(result)
+        # Last: the journal's line marks the evaluation done (rl/eval_journal.py).
+        append_durably(self.run_dir / rd.EVALS_FILE, (json.dumps(record) + "\n").encode())
         if self._writer is not None:
             self._writer.evaluation(self.episode - 1, result)
         self.last_eval = result
@@ -425,7 +455,12 @@ class Trainer:
     def _greedy(self, episodes: int, flown: Sequence[Trace] = ()) -> tuple[EvalResult, list[Trace]]:
         return evaluate_on(self.env, self.agent.greedy,
                            world=self.spec.world, episodes=episodes, seed=self.spec.seed,
-                           progress=self.progress, desc="greedy evaluation", flown=flown)
+                           progress=self.progress, desc="greedy evaluation", flown=flown, beat=self.beat)
+
+    def beat(self, phase: str = TRAINING) -> None:
+        """With `heartbeat` on, tell a watchdog the run is alive and what it is doing."""
+        if self.heartbeat:
+            write_heartbeat(self.run_dir, self.episode, self.global_step, phase)
 
     def _keep_if_best(self, result: EvalResult) -> None:
         """Copy the checkpoint just evaluated to `best.safetensors` when its greedy success beats
