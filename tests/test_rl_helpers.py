@@ -88,25 +88,50 @@ def tiny_config(**changes: Any):
     return TrainConfig(**base)
 
 
-def train_corridor(out: str, run_dir: str | None, episodes: int, step_delay_s: float, seed: int = 0) -> str:
-    """Start (run_dir None) or resume a corridor run; returns the run directory."""
+def train_corridor(out: str, run_dir: str | None, episodes: int, step_delay_s: float, seed: int = 0,
+                   **changes: Any) -> str:
+    """Start (run_dir None) or resume a corridor run (`changes`: TrainConfig values of a new
+    run); returns the run directory. It writes the heartbeat, as `sitl-bridge train` does."""
     from sitl_bridge.rl.run_dir import RunSpec
     from sitl_bridge.rl.trainer import Trainer
 
     factory = corridor_factory(step_delay_s)
     if run_dir is None:
-        trainer = Trainer.start(out, RunSpec(world="corridor.yaml", seed=seed), tiny_config(episodes=episodes),
-                                factory, progress=False)
+        trainer = Trainer.start(out, RunSpec(world="corridor.yaml", seed=seed),
+                                tiny_config(episodes=episodes, **changes), factory, progress=False, heartbeat=True)
         print(trainer.run_dir, flush=True)
     else:
-        trainer = Trainer.resume(run_dir, factory, episodes=episodes, progress=False)
+        trainer = Trainer.resume(run_dir, factory, episodes=episodes, progress=False, heartbeat=True)
     with trainer:
         trainer.train()
     return str(trainer.run_dir)
 
 
+def kill_when_replacing(name: str, when: str) -> None:
+    """SIGKILL this process just before (`when` "before") or just after ("after") a file named
+    `name` is renamed into place: a kill at an exact point of an atomic write (rl/atomic.py)."""
+    import os
+    import signal
+
+    real_replace = os.replace
+
+    def replace(src: Any, dst: Any) -> None:
+        if Path(dst).name == name and when == "before":
+            os.kill(os.getpid(), signal.SIGKILL)
+        real_replace(src, dst)
+        if Path(dst).name == name and when == "after":
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    os.replace = replace
+
+
 if __name__ == "__main__":
-    # python tests/test_rl_helpers.py OUT RUN_DIR|- EPISODES STEP_DELAY_S
+    # python tests/test_rl_helpers.py OUT RUN_DIR|- EPISODES STEP_DELAY_S [CONFIG_JSON [FILE:before|after]]
+    import json
+
     sys.path.insert(0, str(Path(__file__).parent))
     out_dir, run, count, delay = sys.argv[1:5]
-    train_corridor(out_dir, None if run == "-" else run, int(count), float(delay))
+    config_changes = json.loads(sys.argv[5]) if len(sys.argv) > 5 else {}
+    if len(sys.argv) > 6:
+        kill_when_replacing(*sys.argv[6].split(":"))
+    train_corridor(out_dir, None if run == "-" else run, int(count), float(delay), **config_changes)
