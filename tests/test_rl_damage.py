@@ -1,20 +1,35 @@
-"""Damage to a run directory (issue 14 items 4-5): a missing replay shard does not condemn the
-network, a run never starts over its own history, and garbage in the episode log is noticed."""
+"""Damage to a run directory: a missing replay shard does not condemn the network, a run never
+starts over its own history, garbage in the episode log is noticed, a sound checkpoint that does
+not fit the run (another network size, a wrong state field) falls back to the previous one, and
+an edited config.yaml is refused naming each key, condemning nothing."""
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from test_rl_helpers import corridor_factory, train_corridor
 
-from sitl_bridge.rl.checkpoint import CheckpointError, list_checkpoints, resolve_checkpoint
+from sitl_bridge.errors import ConfigError
+from sitl_bridge.rl.checkpoint import (
+    CheckpointError,
+    list_checkpoints,
+    load_checkpoint,
+    resolve_checkpoint,
+    save_checkpoint,
+)
 from sitl_bridge.rl.episode_log import read_records
+from sitl_bridge.rl.policy import policy_from_checkpoint
 from sitl_bridge.rl.trainer import Trainer, read_run_records
 
 EPISODES = 8
+ROOT = Path(__file__).parent.parent
 
 
 def comparable(records: list[dict]) -> list[tuple]:
@@ -89,3 +104,75 @@ def test_reading_a_log_with_a_damaged_line_skips_it_with_a_warning(tmp_path: Pat
     records = read_records(log, warn=warnings.append)
     assert [r["episode"] for r in records] == [0, 1]
     assert warnings == [f"{log}: line 2 is not an episode record; skipped"]
+
+
+def _refit(path: Path, tensors: dict, state: dict) -> None:
+    """Write `path` again with the project's own save_checkpoint: a checkpoint that verifies."""
+    save_checkpoint(path, tensors, state)
+    load_checkpoint(path)
+
+
+@pytest.mark.parametrize("unfit", ["a network of another size", "episode 'x'", "no 'updates'"])
+def test_a_sound_checkpoint_that_does_not_fit_falls_back_to_the_previous(reference: Path, tmp_path: Path,
+                                                                        unfit: str) -> None:
+    run = copy_of(reference, tmp_path)
+    newest = list_checkpoints(run / "checkpoints")[0]
+    tensors, state = load_checkpoint(newest)
+    if unfit == "a network of another size":
+        other = Path(train_corridor(str(tmp_path / "other"), None, 1, 0.0, hidden_units=24))
+        tensors, _ = load_checkpoint(list_checkpoints(other / "checkpoints")[0])
+    elif unfit == "episode 'x'":
+        state["episode"] = "x"
+    else:
+        del state["updates"]
+    _refit(newest, tensors, state)
+
+    warnings: list[str] = []
+    with Trainer.resume(run, corridor_factory(), progress=False, warn=warnings.append) as trainer:
+        assert trainer.episode == EPISODES - 1  # the previous checkpoint
+        trainer.train()
+    assert len(warnings) == 1 and "\n" not in warnings[0], warnings
+    assert newest.name in warnings[0] and "unusable" in warnings[0] and "falling back" in warnings[0]
+    assert comparable(read_run_records(run)) == comparable(read_run_records(reference))
+    if unfit == "no 'updates'":
+        return  # eval needs only the network and its episode count: that checkpoint flies
+    # eval falls back the same way, and names a checkpoint file that does not fit in one line
+    _refit(newest, tensors, state)
+    assert policy_from_checkpoint(run, latest=True).episode == EPISODES - 1
+    with pytest.raises(CheckpointError, match="unusable content") as info:
+        policy_from_checkpoint(newest)
+    assert "\n" not in str(info.value)
+
+
+def test_eval_of_a_checkpoint_that_does_not_fit_is_one_line(reference: Path, tmp_path: Path) -> None:
+    run = copy_of(reference, tmp_path)
+    newest = list_checkpoints(run / "checkpoints")[0]
+    tensors, state = load_checkpoint(newest)
+    _refit(newest, tensors, {**state, "network": {**state["network"], "hidden_units": 24}})
+    proc = subprocess.run([sys.executable, "-m", "sitl_bridge", "eval", str(newest), "--world", "worlds/empty.yaml",
+                           "--episodes", "1"], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.startswith("error: ") and "size mismatch" in proc.stderr, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+def test_an_edited_config_is_refused_naming_each_key_and_condemns_nothing(reference: Path, tmp_path: Path) -> None:
+    run = copy_of(reference, tmp_path)
+    config_file = run / "config.yaml"
+    original = config_file.read_text()
+    edited = yaml.safe_load(original)
+    edited.update(hidden_units=8, gamma=0.5)
+    config_file.write_text(yaml.safe_dump(edited, sort_keys=False))
+    files = sorted(p.name for p in run.rglob("*"))
+    with pytest.raises(ConfigError) as info:
+        Trainer.resume(run, corridor_factory(), progress=False)
+    message = str(info.value)
+    assert "\n" not in message
+    assert "config.yaml differs from the run's checkpoints in: gamma (0.9 -> 0.5), hidden_units (16 -> 8)" in message
+    assert sorted(p.name for p in run.rglob("*")) == files  # nothing renamed *.corrupt, nothing added
+    config_file.write_text(original)  # put back: the run resumes where it was
+    with Trainer.resume(run, corridor_factory(), episodes=EPISODES + 1, progress=False) as trainer:
+        assert trainer.episode == EPISODES
+        trainer.train()
+    assert [r["episode"] for r in read_run_records(run)] == list(range(EPISODES + 1))

@@ -175,22 +175,29 @@ def resolve_checkpoint(path: str | Path, *, latest: bool = False) -> tuple[Path,
     (`best.safetensors`) when it has a sound one and `latest` is False, else the newest valid
     checkpoint of the run (or of a `checkpoints/` folder), loaded and verified. Read-only:
     nothing is quarantined."""
+    return open_checkpoint(path, lambda file, tensors, state: (file, tensors, state), latest=latest)
+
+
+def open_checkpoint(path: str | Path, use: Callable[[Path, dict[str, torch.Tensor], dict[str, Any]], T], *,
+                    latest: bool = False) -> T:
+    """`use(file, tensors, state)` of the checkpoint `resolve_checkpoint` picks; when that one is
+    unusable (damaged, or `use` raises CheckpointCorrupt: its content does not fit), of the next
+    one in the same order (best, then newest to oldest). A checkpoint file given by name has
+    no fallback: its problem is the CheckpointError. Read-only: nothing is quarantined."""
     path = Path(path)
     if path.is_file():
-        return (path, *load_checkpoint(path))
+        return use(path, *load_checkpoint(path))
+    candidates = []
     best = path / BEST_CHECKPOINT
     if not latest and best.is_file():
-        try:
-            return (best, *load_checkpoint(best))
-        except CheckpointCorrupt as exc:
-            log.warning("ignoring the run's unusable best checkpoint, using the newest: %s", exc)
+        candidates.append(best)
     folder = path / CHECKPOINT_DIR if (path / CHECKPOINT_DIR).is_dir() else path
     if not folder.is_dir():
         raise CheckpointError(f"{path}: neither a checkpoint file nor a run directory")
     problems: list[str] = []
-    for candidate in list_checkpoints(folder):
+    for candidate in [*candidates, *list_checkpoints(folder)]:
         try:
-            return (candidate, *load_checkpoint(candidate))
+            return use(candidate, *load_checkpoint(candidate))
         except CheckpointCorrupt as exc:
             problems.append(str(exc))
             log.warning("skipping unusable checkpoint: %s", exc)

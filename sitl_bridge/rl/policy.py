@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sitl_bridge.rl.checkpoint import resolve_checkpoint
+from sitl_bridge.rl.checkpoint import open_checkpoint
+from sitl_bridge.rl.checkpoint_fit import RESTORE_ERRORS, unfit
 from sitl_bridge.rl.dqn import NetworkShape, QNetwork
 
 
@@ -47,9 +48,19 @@ class GreedyPolicy:
 def load_network(path: str | Path, *, latest: bool = False) -> tuple[QNetwork, Path, dict]:
     """The online Q network of a checkpoint file or run directory (its best greedy checkpoint,
     or with `latest` its newest valid one; see `resolve_checkpoint`)."""
-    file, tensors, state = resolve_checkpoint(path, latest=latest)
-    network = QNetwork(NetworkShape(**state["network"]))
-    network.load_state_dict({k[len("online."):]: v for k, v in tensors.items() if k.startswith("online.")})
+    return open_checkpoint(path, _network_of, latest=latest)
+
+
+def _network_of(file: Path, tensors: dict[str, torch.Tensor], state: dict) -> tuple[QNetwork, Path, dict]:
+    """The checkpoint's online network; CheckpointCorrupt (try the next one) when its content
+    does not make one (a network of another size, a state field of the wrong type)."""
+    try:
+        network = QNetwork(NetworkShape(**state["network"]))
+        network.load_state_dict({k[len("online."):]: v for k, v in tensors.items() if k.startswith("online.")})
+        if type(state.get("episode", 0)) is not int:
+            raise TypeError(f"episode is {state['episode']!r}, not a count")
+    except RESTORE_ERRORS as exc:
+        raise unfit(file, exc) from None
     network.eval()
     return network, file, state
 
@@ -58,4 +69,4 @@ def policy_from_checkpoint(path: str | Path, *, latest: bool = False) -> GreedyP
     """Greedy policy of a run directory (its best greedy checkpoint unless `latest`) or
     checkpoint file: `policy(obs) -> int action`."""
     network, file, state = load_network(path, latest=latest)
-    return GreedyPolicy(network, file, int(state.get("episode", 0)))
+    return GreedyPolicy(network, file, state.get("episode", 0))

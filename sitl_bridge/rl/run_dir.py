@@ -25,6 +25,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -138,6 +139,21 @@ def read_run_files(path: str | Path) -> tuple[RunSpec, TrainConfig]:
     source = str(path / CONFIG_FILE)
     config = parse_train_node(Node(yaml.safe_load((path / CONFIG_FILE).read_text()), source, "train"))
     return spec, config
+
+
+RESUME_MAY_CHANGE = frozenset({"episodes"})
+"""Config keys a resume may change (`train --resume --episodes N` extends the budget)."""
+
+
+def config_differences(checkpoint_config: Any, config: TrainConfig) -> list[str]:
+    """`key (checkpoint's value -> config.yaml's)` for each hyperparameter of a checkpoint's
+    recorded config that the run's config.yaml now gives another value (keys a resume may
+    change, and keys the checkpoint's version did not have, aside)."""
+    if not isinstance(checkpoint_config, dict):
+        return []
+    current = json.loads(json.dumps(config.to_dict()))  # as the checkpoint's JSON holds it
+    return [f"{key} ({checkpoint_config[key]!r} -> {current[key]!r})" for key in current
+            if key in checkpoint_config and key not in RESUME_MAY_CHANGE and checkpoint_config[key] != current[key]]
 
 
 def run_dir_of(path: str | Path) -> Path | None:

@@ -35,9 +35,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from sitl_bridge.errors import ConfigError
 from sitl_bridge.rl import checkpoint as ckpt
 from sitl_bridge.rl import run_dir as rd
 from sitl_bridge.rl.atomic import append_durably, atomic_write_bytes, atomic_write_json
+from sitl_bridge.rl.checkpoint_fit import check_fits
 from sitl_bridge.rl.config import TrainConfig
 from sitl_bridge.rl.dqn import DQNAgent, NetworkShape, epsilon_at, learning_rate_at
 from sitl_bridge.rl.drones_env import DronesEnv, EnvFactory, StepResult
@@ -193,6 +195,7 @@ class Trainer:
         budget). A run with no checkpoint yet starts over in the same directory."""
         run_dir = Path(run_dir)
         spec, config = rd.read_run_files(run_dir)
+        _refuse_edited_config(run_dir, config)
         if episodes is not None and episodes != config.episodes:
             config = config.replace(episodes=episodes)
             rd.write_run_files(run_dir, spec, config)
@@ -299,6 +302,8 @@ class Trainer:
         if state["network"] != self.agent.shape.to_dict():
             raise ckpt.CheckpointCorrupt(f"{path}: network {state['network']} does not match the run's "
                                          f"{self.agent.shape.to_dict()}")
+        check_fits(path, tensors, state, self.agent, self.rng,
+                   self.config.replay_capacity if self.replay.priorities is not None else None)
         recorded = state.get("log_sha256")
         if recorded is not None and self.episode_log.prefix_digest(state["log_bytes"]) != recorded:
             raise ckpt.CheckpointNotRestorable(
@@ -620,6 +625,22 @@ class Trainer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _refuse_edited_config(run_dir: Path, config: TrainConfig) -> None:
+    """A config.yaml edited after the run's checkpoints were written is a ConfigError naming
+    each differing key, before anything is restored: the checkpoints are sound, only the file
+    changed, so nothing is condemned and putting the values back resumes the run."""
+    for path in ckpt.list_checkpoints(run_dir / rd.CHECKPOINTS):
+        try:
+            recorded = ckpt.read_state(path).get("config")
+        except (ckpt.CheckpointCorrupt, OSError, ValueError, AttributeError):
+            continue  # the newest readable one speaks for the run; damaged ones fall back later
+        differing = rd.config_differences(recorded, config)
+        if differing:
+            raise ConfigError(f"{run_dir / rd.CONFIG_FILE} differs from the run's checkpoints in: "
+                              f"{', '.join(differing)}; put the values back to resume (or start a new run)")
+        return
 
 
 def _prefixed(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
