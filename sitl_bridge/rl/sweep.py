@@ -201,7 +201,7 @@ def _train(job: SweepJob) -> SweepResult:
         # evaluations stop before the last episode); one that stopped early was just evaluated.
         if (outcome.episodes >= trainer.config.episodes and trainer.config.eval_episodes > 0
                 and not trainer.stopped_early):
-            greedy = trainer.evaluate().success_rate
+            greedy = (trainer.recorded_evaluation() or trainer.evaluate()).success_rate  # not again after a kill
     return SweepResult(job.point, job.seed, "done", str(outcome.run_dir), outcome.episodes,
                        outcome.global_step, outcome.success_rate, greedy)
 
