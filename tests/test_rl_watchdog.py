@@ -83,10 +83,11 @@ def test_resume_argv_keeps_only_what_resume_accepts() -> None:
 
 def test_an_evaluation_longer_than_the_freeze_timeout_is_no_freeze(tmp_path: Path) -> None:
     """The heartbeat beats inside the periodic evaluation and the constant-action baseline (8
-    actions x the evaluation's episodes), each far longer than the freeze timeout here."""
+    actions x 25 episodes, 200 flights: 20 s and more), far longer than the freeze timeout here
+    (which still leaves a loaded machine room for a training episode or the child's exit)."""
     cmd = [sys.executable, "-m", "sitl_bridge", "train", "worlds/empty.yaml", "--watchdog", "--out", str(tmp_path),
-           "--episodes", "2", "--eval-every", "1", "--eval-episodes", "12", "--no-progress",
-           "--freeze-timeout", "3", "--max-restarts-per-hour", "0"]
+           "--episodes", "2", "--eval-every", "1", "--eval-episodes", "25", "--no-progress",
+           "--freeze-timeout", "8", "--max-restarts-per-hour", "0"]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=400,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert proc.returncode == 0, proc.stderr
@@ -96,4 +97,4 @@ def test_an_evaluation_longer_than_the_freeze_timeout_is_no_freeze(tmp_path: Pat
     evals = [json.loads(line) for line in (run_dir / "evals.jsonl").read_text().splitlines()]
     assert [e["after_episodes"] for e in evals] == [1, 2]  # the periodic one and the final one
     assert (run_dir / "baseline.json").is_file()
-    assert read_heartbeat(run_dir)["phase"] == "greedy evaluation 12/12"  # the final evaluation's last beat
+    assert read_heartbeat(run_dir)["phase"] == "greedy evaluation 25/25"  # the final evaluation's last beat
