@@ -2,8 +2,12 @@
 
 Two links per vehicle instance i, like PX4 SITL's `px4-rc.mavlink`: the offboard/API link
 (bind 127.0.0.1:14580+i, send to 14540+i) and a GCS link (bind 18570+i, send to 14550).
-A link answers the address that last wrote to it (MAVSDK's `udpin` replies to whatever
-sends). Telemetry streams run on SIMULATED time (the autopilot's clock); only the keep-alive
+A link keeps its client like PX4's `mavlink_receiver` keeps its partner: telemetry goes to the
+configured remote port until a valid frame arrives, then to the first address that sent one.
+Frames from any other address are still handled and answered at that address (acks,
+parameters, requested messages), but they do not redirect the telemetry. Handover: once the
+client has sent no valid frame for `CLIENT_TIMEOUT_WALL_S` (2.5 s of wall time, PX4's heartbeat
+timeout; MAVSDK sends a heartbeat every second), the next sender becomes the client. Telemetry streams run on SIMULATED time (the autopilot's clock); only the keep-alive
 HEARTBEAT looks at the wall clock: MAVSDK drops a vehicle after 3 s of wall time without
 one, and while the simulation is held simulated time stands still.
 
@@ -60,6 +64,7 @@ d = mavlink.dialect
 
 API_REMOTE_BASE_PORT = API_CLIENT_BASE_PORT  # the stub's name for it
 KEEPALIVE_WALL_S = 1.0
+CLIENT_TIMEOUT_WALL_S = 2.5  # client silence after which another sender takes the link (PX4's heartbeat timeout)
 BATCH_MAX_MESSAGES = 20  # per datagram: well under UDP size limits
 GCS_BATCH_FACTOR = 10  # the GCS link's batch interval, in API link intervals (20 ms wall in-process)
 POLL_WALL_S = 0.0005  # batched and running: read the sockets at most this often (wall)
@@ -123,7 +128,9 @@ class _Link:
             self.sock.close()
             raise
         self.sock.setblocking(False)
-        self.remote = remote
+        self.remote = remote           # where telemetry goes: the configured port, then the client
+        self.client: tuple[str, int] | None = None   # the first sender of a valid frame (see module docstring)
+        self.client_heard_wall = -math.inf
         self.intervals_us = {msgid: int(round(1e6 / hz)) for msgid, hz in rates_hz.items() if hz > 0}
         self.default_intervals_us = dict(self.intervals_us)
         self.next_due_us: dict[int, int] = {}
@@ -270,7 +277,8 @@ class MavlinkApi:
             if not frames:
                 self.stats.garbage_datagrams += 1
                 continue
-            link.remote = address
+            if not self._from_client(link, address):
+                self._flush(link)  # queued telemetry is the client's; answers go to the sender
             for frame in frames:
                 self.stats.frames += 1
                 handler = self._handlers.get(frame.msgid)
@@ -283,13 +291,28 @@ class MavlinkApi:
                 except Exception:  # a malformed message must not kill the vehicle
                     log.exception("%s link: error handling message %d", link.name, frame.msgid)
 
-    def _flush(self, link: _Link) -> None:
+    def _from_client(self, link: _Link, address: tuple[str, int]) -> bool:
+        """Whether a valid frame from `address` comes from the link's client; the first sender
+        becomes the client, and any sender once the client has been silent for the timeout."""
+        wall = self._clock()
+        if address != link.client:
+            if link.client is not None and wall - link.client_heard_wall < CLIENT_TIMEOUT_WALL_S:
+                return False
+            if link.client is not None:
+                log.info("%s link: client %s:%d silent for %.1f s; now serving %s:%d", link.name,
+                         *link.client, wall - link.client_heard_wall, *address)
+            link.client = link.remote = address
+        link.client_heard_wall = wall
+        return True
+
+    def _flush(self, link: _Link, to: tuple[str, int] | None = None) -> None:
+        """Send the queued messages in one datagram to `to` (default: the link's client)."""
         if not link.outbox:
             return
         data = b"".join(link.outbox)
         link.outbox.clear()
         try:
-            link.sock.sendto(data, link.remote)
+            link.sock.sendto(data, to or link.remote)
             self.stats.sent_datagrams += 1
         except (BlockingIOError, ConnectionRefusedError, InterruptedError):
             self.stats.send_errors += 1
@@ -370,20 +393,20 @@ class MavlinkApi:
     def _for_us(self, target_system: int, target_component: int) -> bool:
         return target_system in (0, self.system_id) and target_component in (0, self.component_id)
 
-    def _ack(self, link: _Link, frame: mavlink.Frame, command: int, result: int) -> None:
+    def _ack(self, link: _Link, frame: mavlink.Frame, command: int, result: int, to: tuple[str, int]) -> None:
         self._queue(link, d.MAVLink_command_ack_message,
                     dict(command=command, result=int(result), target_system=frame.system_id,
                          target_component=frame.component_id))
-        self._flush(link)
+        self._flush(link, to)
 
-    def _on_command_long(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+    def _on_command_long(self, link: _Link, frame: mavlink.Frame, address: tuple[str, int]) -> None:
         p1, p2, p3, p4, p5, p6, p7, command, ts, tc, _confirmation = _CMD_STRUCT_LONG.unpack(frame.payload)
         if not self._for_us(ts, tc):
             return
         # COMMAND_LONG carries positions as degrees (params 5, 6) and altitude AMSL (param 7)
-        self._command(link, frame, command, (p1, p2, p3, p4, p5, p6, p7), relative_alt=False)
+        self._command(link, frame, address, command, (p1, p2, p3, p4, p5, p6, p7), relative_alt=False)
 
-    def _on_command_int(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+    def _on_command_int(self, link: _Link, frame: mavlink.Frame, address: tuple[str, int]) -> None:
         p1, p2, p3, p4, x, y, z, command, ts, tc, coord_frame, _cur, _auto = _CMD_STRUCT_INT.unpack(frame.payload)
         if not self._for_us(ts, tc):
             return
@@ -391,10 +414,10 @@ class MavlinkApi:
         # x, y are degE7; INT32_MAX means "unchanged" like a NaN param
         lat = x * 1e-7 if x != 2**31 - 1 else _NAN
         lon = y * 1e-7 if y != 2**31 - 1 else _NAN
-        self._command(link, frame, command, (p1, p2, p3, p4, lat, lon, z), relative_alt=relative)
+        self._command(link, frame, address, command, (p1, p2, p3, p4, lat, lon, z), relative_alt=relative)
 
-    def _command(self, link: _Link, frame: mavlink.Frame, command: int, p: tuple[float, ...], *,
-                 relative_alt: bool) -> None:
+    def _command(self, link: _Link, frame: mavlink.Frame, address: tuple[str, int], command: int,
+                 p: tuple[float, ...], *, relative_alt: bool) -> None:
         """Execute, ACK from compid 1 (always: MAVSDK retries and times out otherwise), then send
         what the command asked for and a HEARTBEAT so a state change shows at once."""
         self.stats.commands += 1
@@ -405,12 +428,12 @@ class MavlinkApi:
             result, reply_msgid = CommandResult.FAILED, None
         if result == CommandResult.UNSUPPORTED:
             self.stats.unsupported_commands += 1
-        self._ack(link, frame, command, result)
+        self._ack(link, frame, command, result, address)
         if reply_msgid is not None and not self.send_now(reply_msgid, link):
             log.debug("requested message %d has no data yet", reply_msgid)
         if result == CommandResult.ACCEPTED and reply_msgid is None and command in _STATE_COMMANDS:
             self.send_now(d.MAVLINK_MSG_ID_HEARTBEAT, link)
-        self._flush(link)
+        self._flush(link, address)
 
     def _execute(self, link: _Link, command: int, p: tuple[float, ...],
                  relative_alt: bool) -> tuple[CommandResult, int | None]:
@@ -507,17 +530,17 @@ class MavlinkApi:
         link.outbox.append(self._packer.encoder.frame(
             d.MAVLINK_MSG_ID_PARAM_VALUE, d.MAVLink_param_value_message.crc_extra, payload))
 
-    def _on_param_request_list(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+    def _on_param_request_list(self, link: _Link, frame: mavlink.Frame, address: tuple[str, int]) -> None:
         ts, tc = mavlink.unpack_payload(frame)
         if not self._for_us(ts, tc):
             return
         for param in self.autopilot.params:
             self._param_value(link, param)
             if len(link.outbox) >= 20:   # keep datagrams well under the UDP size limits
-                self._flush(link)
-        self._flush(link)
+                self._flush(link, address)
+        self._flush(link, address)
 
-    def _on_param_request_read(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+    def _on_param_request_read(self, link: _Link, frame: mavlink.Frame, address: tuple[str, int]) -> None:
         index, ts, tc, raw_id = mavlink.unpack_payload(frame)
         if not self._for_us(ts, tc):
             return
@@ -526,9 +549,9 @@ class MavlinkApi:
         if param is None:
             return  # PX4 stays silent on unknown names; the client times out
         self._param_value(link, param)
-        self._flush(link)
+        self._flush(link, address)
 
-    def _on_param_set(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+    def _on_param_set(self, link: _Link, frame: mavlink.Frame, address: tuple[str, int]) -> None:
         _value, ts, tc, raw_id, param_type = mavlink.unpack_payload(frame)
         if not self._for_us(ts, tc):
             return
@@ -548,7 +571,7 @@ class MavlinkApi:
         else:
             log.warning("PARAM_SET %s = %g refused (not finite)", param.name, value)
         self._param_value(link, param)   # echo (the unchanged value when refused)
-        self._flush(link)
+        self._flush(link, address)
 
     # offboard setpoints ---------------------------------------------------------------------------
     def _on_set_position_target_local_ned(self, link: _Link, frame: mavlink.Frame, _address) -> None:
@@ -581,8 +604,8 @@ class MavlinkApi:
                                  yaw_rate if not mask & _IGNORE_YAW_RATE else _NAN)
         self.stats.setpoints += 1
 
-    def _on_timesync(self, link: _Link, frame: mavlink.Frame, _address) -> None:
+    def _on_timesync(self, link: _Link, frame: mavlink.Frame, address: tuple[str, int]) -> None:
         tc1, ts1 = mavlink.unpack_payload(frame)[:2]
         if tc1 == 0:   # a request: answer with our (simulated) clock in ns
             self._queue(link, d.MAVLink_timesync_message, dict(tc1=self.autopilot.time_us * 1000, ts1=ts1))
-            self._flush(link)
+            self._flush(link, address)
