@@ -7,6 +7,7 @@ Every reader of user configuration (worlds, scenario tasks, trainer settings) va
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
@@ -18,8 +19,22 @@ T = TypeVar("T")
 _MISSING = object()
 
 
+# What str.splitlines() breaks on: escaped in every ConfigError, so a key or value that holds
+# one (a YAML key can) still gives a one-line message.
+_LINE_BREAKS = {ord(c): repr(c)[1:-1] for c in "\n\r\v\f\x1c\x1d\x1e\x85\u2028\u2029"}
+
+NAME_MAX_CHARS = 200
+"""Longest name (world, vehicle, obstacle, goal) a configuration may give."""
+TEXT_MAX_CHARS = 4096
+"""Longest free text (a description, a rule's text, a path) a configuration may give."""
+
+
 class ConfigError(ValueError):
-    """A configuration file is wrong; the message is one line naming file, key path and problem."""
+    """A configuration file is wrong; the message is one line naming file, key path and problem
+    (line breaks in it are escaped, whatever the file held)."""
+
+    def __init__(self, message: object = "") -> None:
+        super().__init__(str(message).translate(_LINE_BREAKS))
 
 
 def _short(value: Any, limit: int = 60) -> str:
@@ -48,7 +63,10 @@ class Node:
     def _child_path(self, key: str | int) -> str:
         if isinstance(key, int):
             return f"{self.path}[{key}]"
-        return f"{self.path}.{key}" if self.path else str(key)
+        text = str(key)
+        if len(text) > NAME_MAX_CHARS:  # a hostile key must not make a huge message
+            text = f"{text[:40]}...({len(text)} characters)"
+        return f"{self.path}.{text}" if self.path else text
 
     def mapping(self) -> Mapping[str, Any]:
         if not isinstance(self.value, Mapping):
@@ -112,9 +130,13 @@ class Node:
             raise self.error("true or false")
         return self.value
 
-    def string(self, choices: tuple[str, ...] | None = None) -> str:
+    def string(self, choices: tuple[str, ...] | None = None, *, max_chars: int = TEXT_MAX_CHARS) -> str:
+        """The string here; `max_chars` bounds it (NAME_MAX_CHARS for names)."""
         if not isinstance(self.value, str) or (choices and self.value not in choices):
             raise self.error(f"one of {', '.join(choices)}" if choices else "a string")
+        if len(self.value) > max_chars:
+            raise ConfigError(f"{self.source}: {self.path or '<top>'}: expected a string of at most "
+                              f"{max_chars} characters, got {len(self.value)} characters")
         return self.value
 
     def vector(self, length: int = 3, *, positive: bool = False, non_negative: bool = False) -> tuple[float, ...]:
@@ -145,6 +167,10 @@ def _describe_number(positive: bool, non_negative: bool, minimum: float | None, 
         parts.append(f"<= {maximum}")
     return " ".join(parts)
 
+
+_SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+"""libyaml's safe loader where PyYAML was built with it (~30x faster on a large file), else
+the pure-Python one; both build plain data only."""
 
 MAX_YAML_BYTES = 16 * 1024 * 1024
 """Scenario files are small; anything larger is refused before parsing."""
@@ -178,7 +204,7 @@ def load_yaml(path: str | Path) -> Node:
     if depth > MAX_YAML_DEPTH:
         raise ConfigError(f"{source}: nested {depth} levels deep (at most {MAX_YAML_DEPTH}); not a scenario")
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506 (a safe loader: plain data only)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -192,11 +218,16 @@ def load_yaml(path: str | Path) -> Node:
 def _bracket_depth(text: str) -> int:
     """Deepest nesting of flow brackets ([ and {) in `text`, a cheap guard before parsing
     (indentation nesting is bounded by the line length and the file size)."""
+    if text.count("[") + text.count("{") <= MAX_YAML_DEPTH:
+        return 0  # cannot nest too deep: skip the character walk (seconds on a large file)
     depth = deepest = 0
-    for char in text:
-        if char in "[{":
+    for match in _BRACKETS.finditer(text):
+        if match.group() in "[{":
             depth += 1
             deepest = max(deepest, depth)
-        elif char in "]}":
+        else:
             depth = max(0, depth - 1)
     return deepest
+
+
+_BRACKETS = re.compile(r"[\[\]{}]")

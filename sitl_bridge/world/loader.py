@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from sitl_bridge.errors import ConfigError, Node, load_yaml
+from sitl_bridge.errors import NAME_MAX_CHARS, ConfigError, Node, load_yaml
 from sitl_bridge.world.clock import divides
 from sitl_bridge.world.schema import (
     SHAPE_KINDS,
@@ -83,7 +83,7 @@ def _parse_world(node: Node, base_dir: Path, task: Node | None, train: Node | No
     node.mapping()
     node.reject_unknown({"name", "description", "home", "physics", "workspace", "ground",
                          "vehicles", "goals", "obstacles"})
-    name = node.get("name").string()
+    name = node.get("name").string(max_chars=NAME_MAX_CHARS)
     description = node.get("description", "").string()
     home = _parse_home(node.get("home", {}))
     physics = _parse_physics(node.get("physics", {}))
@@ -170,7 +170,7 @@ def _parse_box(node: Node, what: str, *, strict: bool = True) -> Workspace:
 def _parse_goal(node: Node) -> GoalRegion:
     node.mapping()
     node.reject_unknown({"name", "center", "size", "randomize"})
-    name = node.get("name").string()
+    name = node.get("name").string(max_chars=NAME_MAX_CHARS)
     center = _vec(node.get("center"), 3)
     size = _vec(node.get("size"), 3, positive=True)
     rmin = rmax = None
@@ -229,13 +229,13 @@ def _parse_lidar(node: Node) -> LidarConfig:
 def _parse_vehicle(node: Node, goal_index: dict[str, int]) -> VehicleSpec:
     node.mapping()
     node.reject_unknown({"name", "model", "spawn", "goal", "lidar"})
-    name = node.get("name").string()
+    name = node.get("name").string(max_chars=NAME_MAX_CHARS)
     model = node.get("model", "iris").string(VEHICLE_MODELS)
     spawn = _parse_spawn(node.get("spawn"))
     goal = None
     if node.has("goal"):
         goal_node = node.get("goal")
-        goal_name = goal_node.string()
+        goal_name = goal_node.string(max_chars=NAME_MAX_CHARS)
         if goal_name not in goal_index:
             raise goal_node.error(f"the name of a goal in world.goals ({', '.join(goal_index) or 'none defined'})")
         goal = goal_index[goal_name]
@@ -293,7 +293,7 @@ SHAPE_KEYS_OF = {"box": ("size",), "wall": ("size", "opening"), "cylinder": ("ra
 def _parse_obstacle(node: Node, base_dir: Path, vehicle_index: dict[str, int]) -> Obstacle:
     node.mapping()
     node.reject_unknown(SHAPE_KEYS | {"name", "position", "yaw", "color", "mover", "mass", "randomize"})
-    name = node.get("name").string()
+    name = node.get("name").string(max_chars=NAME_MAX_CHARS)
     shape = _parse_shape(node, base_dir)
     position = _vec(node.get("position"), 3)
     yaw = math.radians(_num(node.get("yaw", 0.0), minimum=-360.0, maximum=360.0))
@@ -332,7 +332,7 @@ def _parse_obstacle_randomization(node: Node, base_dir: Path, vehicle_index: dic
         a.mapping()
         a.reject_unknown({"vehicle", "fraction", "lateral"})
         vnode = a.get("vehicle")
-        vname = vnode.string()
+        vname = vnode.string(max_chars=NAME_MAX_CHARS)
         if vname not in vehicle_index:
             raise vnode.error(f"the name of a vehicle ({', '.join(vehicle_index)})")
         fnode = a.get("fraction")
