@@ -30,6 +30,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="override a parameter (repeatable), e.g. --param MIS_TAKEOFF_ALT=3")
     parser.add_argument("--speed-factor", type=float, default=None,
                         help="scale the `wall` timeouts of px4_params/*.params for this speed factor")
+    parser.add_argument("--fence", default=None, metavar="LAT,LON,ALT,MIN_X,MIN_Y,MIN_Z,MAX_X,MAX_Y,MAX_Z",
+                        help="refuse position commands outside this box (world ENU metres around the "
+                             "geodetic origin LAT,LON,ALT); the session's stub-process kind passes its world's workspace")
     parser.add_argument("--no-gcs", action="store_true", help="do not serve the GCS link (18570+N -> 14550)")
     parser.add_argument("--keep-alive", action="store_true",
                         help="after a simulator session ends, start fresh and wait for the next one")
@@ -53,11 +56,13 @@ def parse_param_overrides(items: list[str]) -> dict[str, float]:
 
 def main(args: argparse.Namespace) -> int:
     from sitl_bridge.autopilot.stub import ParamTable, StubVehicle
+    from sitl_bridge.autopilot.stub.fence import Fence
     from sitl_bridge.autopilot.stub.params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32
     from sitl_bridge.ports import vehicle_ports
 
     try:
         overrides = parse_param_overrides(args.param)
+        fence = Fence.from_text(args.fence) if args.fence is not None else None
     except ConfigError as exc:
         print(f"sitl-bridge stub: {exc}", file=sys.stderr)
         return 2
@@ -78,7 +83,7 @@ def main(args: argparse.Namespace) -> int:
                 params.add(name, value, MAV_PARAM_TYPE_INT32 if value.is_integer() else MAV_PARAM_TYPE_REAL32)
         try:
             vehicle = StubVehicle(args.instance, args.host, ground_truth_estimate=args.ground_truth,
-                                  params=params, gcs=not args.no_gcs)
+                                  params=params, gcs=not args.no_gcs, fence=fence)
         except OSError as exc:
             log.error("stub %d: cannot open its MAVLink ports (%s); is another autopilot using instance %d? Pick another with -i",
                       args.instance, exc.strerror, args.instance)

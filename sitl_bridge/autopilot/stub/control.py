@@ -33,6 +33,16 @@ from .vec import (
 GRAVITY_M_S2 = 9.80665
 _NAN = float("nan")
 
+# The altitude floor: no setpoint may fly the vehicle into the ground. Below FLOOR_HEIGHT_M above
+# the local origin (the stub's ground: the estimator's origin is where the vehicle stood), and
+# earlier while it sinks faster than commanded (the height FLOOR_LOOKAHEAD_S ahead counts), the
+# tilt limit narrows towards FLOOR_MIN_TILT_RAD, so the thrust holds the height before it pushes
+# sideways. A commanded descent (a downward velocity setpoint, landing) is not resisted: it
+# sinks as fast as asked and still reaches the ground.
+FLOOR_HEIGHT_M = 3.0
+FLOOR_LOOKAHEAD_S = 2.0
+FLOOR_MIN_TILT_RAD = math.radians(10.0)
+
 
 @dataclass
 class Setpoint:
@@ -60,6 +70,17 @@ def _limit_tilt(body_z: Vec3, max_tilt_rad: float) -> Vec3:
         return (0.0, 0.0, 1.0)
     s = math.sin(max_tilt_rad) / horizontal
     return (body_z[0] * s, body_z[1] * s, math.cos(max_tilt_rad))
+
+
+@dual
+def floor_tilt(tilt_max_rad: float, height_m: float, sink_m_s: float, sink_setpoint_m_s: float) -> float:
+    """The tilt limit under the altitude floor (see FLOOR_HEIGHT_M) at `height_m` above the
+    origin, sinking at `sink_m_s` (NED z velocity) with `sink_setpoint_m_s` commanded."""
+    unwanted_sink = sink_m_s - max(sink_setpoint_m_s, 0.0)
+    ahead_m = height_m - max(unwanted_sink, 0.0) * FLOOR_LOOKAHEAD_S
+    if ahead_m >= FLOOR_HEIGHT_M:
+        return tilt_max_rad
+    return min(tilt_max_rad, max(FLOOR_MIN_TILT_RAD, tilt_max_rad * max(ahead_m, 0.0) / FLOOR_HEIGHT_M))
 
 
 @dual
@@ -141,6 +162,7 @@ def position_control(st: np.ndarray, g: np.ndarray, dt_s: float, psp: Vec3, vff:
         kp_xy * ey + st[_VEL_INT + 1] - kd_xy * accel_ned_m_s2[1],
         kp_z * ez + st[_VEL_INT + 2] - kd_z * accel_ned_m_s2[2],
     )
+    tilt_max_rad = floor_tilt(tilt_max_rad, -position_ned_m[2], velocity_ned_m_s[2], vz)
     thr = _acceleration_control(acc, tilt_max_rad, hover, thr_min)
 
     # vertical anti-windup: stop integrating into a saturated thrust

@@ -24,6 +24,7 @@ from sitl_bridge.autopilot.fleet import (
 from sitl_bridge.autopilot.modes import mode_name
 
 from .autopilot import StubAutopilot
+from .fence import Fence
 from .params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, ParamTable
 from .vehicle import StubVehicle
 
@@ -75,7 +76,8 @@ class InProcessStubFleet(AutopilotFleet):
             vehicle = StubVehicle(instance, config.host, ground_truth_estimate=config.ground_truth_estimate,
                                   params=stub_params(config.speed_factor, config.params),
                                   telemetry_batch_wall_s=TELEMETRY_BATCH_WALL_S,
-                                  api_streams="client" if config.api_telemetry == "client" else "onboard")
+                                  api_streams="client" if config.api_telemetry == "client" else "onboard",
+                                  fence=Fence.of_world(config.world))
             self.vehicles.append(vehicle)
             if not vehicle.connect(config.connect_timeout_s or 10.0):
                 raise SessionError(f"vehicle {instance}: stub could not connect to the HIL link")
@@ -132,7 +134,8 @@ class StubProcessFleet(AutopilotFleet):
         for instance in self.instances:
             # --once: a stub whose simulator vanished (we were killed) exits instead of waiting.
             command = [sys.executable, "-m", "sitl_bridge", "stub", "-i", str(instance), "--once",
-                       "--host", config.host, "--speed-factor", repr(config.speed_factor)]
+                       "--host", config.host, "--speed-factor", repr(config.speed_factor),
+                       "--fence", Fence.of_world(config.world).to_text()]
             if config.ground_truth_estimate:
                 command.append("--ground-truth")
             for name, value in config.params.items():

@@ -50,6 +50,7 @@ from sitl_bridge.ports import (
 )
 
 from . import telemetry
+from .fence import REACH_M, Fence
 from .modes import CommandResult, system_id_for
 from .param_bounds import clamp_to_px4_range
 from .params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Param, decode_param_value
@@ -154,16 +155,19 @@ class MavlinkApi:
     clock: wall clock for the keep-alive and the batching (time.monotonic; injectable for tests).
     batch_wall_s: batch the streams' messages over this much wall time while simulated time
         runs (0: one datagram per pump, for a stub whose pumps may stop without a final one).
+    fence: the world's workspace, where DO_REPOSITION may send the vehicle (`fence.py`; None:
+        only the `REACH_M` bound).
     """
 
     def __init__(self, autopilot: StubAutopilot, instance: int | None = None, host: str = "127.0.0.1", *,
                  api_bind_port: int | None = None, api_remote_port: int | None = None, gcs: bool = True,
                  gcs_bind_port: int | None = None, gcs_remote_port: int = GCS_REMOTE_PORT,
                  keepalive_wall_s: float = KEEPALIVE_WALL_S, clock: Callable[[], float] = time.monotonic,
-                 batch_wall_s: float = 0.0, api_streams: str = "onboard") -> None:
+                 batch_wall_s: float = 0.0, api_streams: str = "onboard", fence: Fence | None = None) -> None:
         if api_streams not in telemetry.API_STREAMS:
             raise ValueError(f"api_streams: expected one of {', '.join(telemetry.API_STREAMS)}, got {api_streams!r}")
         self.autopilot = autopilot
+        self.fence = fence
         self.instance = autopilot.instance if instance is None else instance
         self.system_id = system_id_for(self.instance)
         self.component_id = 1
@@ -496,7 +500,23 @@ class MavlinkApi:
         else:
             down = cur[2]
         yaw = wrap_pi(math.radians(p[3])) if math.isfinite(p[3]) else None
+        refusal = self._reposition_refusal(north, east, down)
+        if refusal is not None:
+            self.autopilot.commander.status_texts.append((d.MAV_SEVERITY_WARNING, f"Reposition refused: {refusal}"))
+            log.info("DO_REPOSITION to (%g, %g, %g) m NED refused: %s", north, east, down, refusal)
+            return CommandResult.DENIED
         return self.autopilot.reposition((north, east, down), yaw)
+
+    def _reposition_refusal(self, north: float, east: float, down: float) -> str | None:
+        """Why a reposition target (local NED around the estimator's origin) is refused, or None."""
+        if max(abs(north), abs(east), abs(down)) > REACH_M:
+            return f"target over {REACH_M / 1000:g} km away"
+        if self.fence is None:
+            return None
+        lat0, lon0, alt0 = self.autopilot.estimate.origin  # type: ignore[misc] (checked by the caller)
+        lat = lat0 + math.degrees(north / _EARTH_RADIUS_M)
+        lon = lon0 + math.degrees(east / (_EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+        return "outside the workspace" if self.fence.outside(lat, lon, alt0 - down) else None
 
     def _set_message_interval(self, link: _Link, msgid_f: float, interval_f: float) -> CommandResult:
         if not math.isfinite(msgid_f) or int(msgid_f) not in telemetry.BUILDERS:

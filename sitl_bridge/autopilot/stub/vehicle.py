@@ -7,6 +7,7 @@ This is what `SimSession` creates per vehicle for `autopilot="stub"` (in-process
 from __future__ import annotations
 
 from .autopilot import StubAutopilot
+from .fence import Fence
 from .hil_client import HIL_BASE_PORT, HilClient
 from .mavlink_api import MavlinkApi
 from .params import ParamTable
@@ -22,17 +23,20 @@ class StubVehicle:
     telemetry_batch_wall_s: the API's `batch_wall_s` (in-process, pumped by a lockstep that
         pumps again when it holds; 0 for a stub in its own process).
     api_streams: the API link's stream set (`MavlinkApi` api_streams: "onboard" or "client").
+    fence: the world's workspace for position commands (`fence.py`; None: only the reach bound).
     """
 
     def __init__(self, instance: int, host: str = "127.0.0.1", *, ground_truth_estimate: bool = False,
                  params: ParamTable | None = None, api: bool = True, gcs: bool = True,
                  hil_base_port: int = HIL_BASE_PORT, speed_factor: float | None = None,
-                 telemetry_batch_wall_s: float = 0.0, api_streams: str = "onboard") -> None:
+                 telemetry_batch_wall_s: float = 0.0, api_streams: str = "onboard",
+                 fence: Fence | None = None) -> None:
         if params is None:
             params = ParamTable(speed_factor=speed_factor)
         self.autopilot = StubAutopilot(instance, params, ground_truth_estimate=ground_truth_estimate)
         self.api = MavlinkApi(self.autopilot, instance, host, gcs=gcs,
-                              batch_wall_s=telemetry_batch_wall_s, api_streams=api_streams) if api else None
+                              batch_wall_s=telemetry_batch_wall_s, api_streams=api_streams,
+                              fence=fence) if api else None
         self.hil = HilClient(self.autopilot, instance, host, hil_base_port, api=self.api)
 
     @property
