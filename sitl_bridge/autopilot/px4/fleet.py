@@ -4,6 +4,7 @@ a session's `px4` autopilot kind."""
 
 from __future__ import annotations
 
+import logging
 import math
 import shutil
 import time
@@ -24,7 +25,7 @@ from sitl_bridge.autopilot.fleet import (
 )
 from sitl_bridge.autopilot.in_air_reset import Estimate
 from sitl_bridge.autopilot.px4.delivery import wait_delivered
-from sitl_bridge.autopilot.px4.in_air import IN_AIR_LIMITS, InAirLimits
+from sitl_bridge.autopilot.px4.in_air import IN_AIR_LIMITS, InAirLimits, describe
 from sitl_bridge.autopilot.px4.in_air import refusal as in_air_refusal
 from sitl_bridge.autopilot.px4.observer import Px4Observation
 from sitl_bridge.autopilot.px4.params import load_param_overrides
@@ -39,6 +40,8 @@ from sitl_bridge.ports import (
     api_bind_port,
     vehicle_ports,
 )
+
+log = logging.getLogger(__name__)
 
 IN_AIR_FRESH_S = 1.0
 """`in_air_refusal` trusts PX4's reports read within this much simulated time."""
@@ -156,8 +159,19 @@ class Px4Fleet:
                               if obs.velocity_ned_m_s is not None else math.inf)
             reason = in_air_refusal(obs, state, self.estimate_error_m(lockstep, index), velocity_error, limits)
             if reason:
-                return f"vehicle {index} (PX4 instance {autopilot.instance}): {reason}"
+                detail = describe(obs, state, self._estimated_height_m(lockstep, index, obs), time.monotonic())
+                log.info("PX4 instance %d refuses to fly on: %s (%s)", autopilot.instance, reason, detail)
+                return f"vehicle {index} (PX4 instance {autopilot.instance}): {reason} ({detail})"
         return ""
+
+    def _estimated_height_m(self, lockstep: Any, index: int, obs: Px4Observation) -> float | None:
+        """PX4's estimate of the height in the truth's frame (its local z moved by the origin
+        offset found when it became ready), or None before it reported one."""
+        origin = self._origin_offsets[index]
+        if obs.position_ned_m is None or origin is None:
+            return None
+        shift = lockstep.sensors[index].position_offset_ned_m
+        return -(obs.position_ned_m[2] + origin[2] - float(shift[2]))
 
     def _observe_fresh(self, lockstep: Any) -> None:
         """Held: poll every PX4's reports; where they were last made fresh more than

@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass
 
 from sitl_bridge import mavlink
-from sitl_bridge.autopilot.modes import OFFBOARD, split_custom_mode
+from sitl_bridge.autopilot.modes import OFFBOARD, mode_name, split_custom_mode
 from sitl_bridge.autopilot.px4.observer import Px4Observation
 from sitl_bridge.physics.state import VehicleState
 
@@ -72,3 +72,20 @@ def refusal(obs: Px4Observation, state: VehicleState, position_error_m: float,
     if not velocity_error_m_s <= limits.max_velocity_error_m_s:
         return f"estimate {velocity_error_m_s:.2f} m/s off the velocity"
     return ""
+
+
+def _enum_name(enum: str, value: int) -> str:
+    entry = mavlink.dialect.enums.get(enum, {}).get(value)
+    return entry.name.removeprefix(enum + "_") if entry is not None else str(value)
+
+
+def describe(obs: Px4Observation, state: VehicleState, estimated_height_m: float | None, now_wall_s: float) -> str:
+    """What a refusal rests on, to tell the next odd one apart: truth and PX4's estimate of the
+    height, what PX4 last reported (landed state, mode, armed, status) and how old each of its
+    reports is (wall seconds since it arrived)."""
+    estimate = f"{estimated_height_m:.2f} m" if estimated_height_m is not None else "none"
+    ages = ", ".join(f"{name} {now_wall_s - at:.2f}" for name, at in sorted(obs.received_wall_s.items()))
+    return (f"height truth {float(state.position_enu_m[2]):.2f} m, PX4 estimate {estimate}; "
+            f"landed state {_enum_name('MAV_LANDED_STATE', obs.landed_state)}, mode {mode_name(obs.custom_mode)}, "
+            f"{'armed' if obs.armed else 'disarmed'}, status {_enum_name('MAV_STATE', obs.system_status)}; "
+            f"report ages (wall s): {ages or 'none received'}")

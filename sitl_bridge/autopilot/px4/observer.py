@@ -42,6 +42,8 @@ class Px4Observation:
     velocity_ned_m_s: tuple[float, float, float] | None = None
     attitude_rad: tuple[float, float, float] | None = None  # PX4's estimate (ATTITUDE): roll, pitch, yaw
     acks: dict[int, int] = field(default_factory=dict)  # command -> MAV_RESULT
+    received_wall_s: dict[str, float] = field(default_factory=dict)
+    """Message name -> time.monotonic() when it last arrived (how old each report is)."""
 
     def summary(self) -> VehicleSummary:
         """Mode name and armed flag of PX4's last HEARTBEAT."""
@@ -56,6 +58,13 @@ class Px4Observation:
             and (self.prearm_ok or self.ready_for_takeoff_line)
         )
 
+
+_REPORTS = {msgid: name for name, msgid in (
+    ("HEARTBEAT", mavlink.HEARTBEAT),
+    ("EXTENDED_SYS_STATE", mavlink.dialect.MAVLINK_MSG_ID_EXTENDED_SYS_STATE),
+    ("LOCAL_POSITION_NED", mavlink.dialect.MAVLINK_MSG_ID_LOCAL_POSITION_NED),
+    ("ATTITUDE", mavlink.dialect.MAVLINK_MSG_ID_ATTITUDE),
+)}  # the reports an in-air refusal rests on (`Px4Observation.received_wall_s`)
 
 _PARAM_FLOAT = struct.Struct("<f")
 _PARAM_INT = struct.Struct("<i")
@@ -135,6 +144,9 @@ class GcsObserver:
                 if frame.component_id != 1:
                     continue
                 msgid = frame.msgid
+                name = _REPORTS.get(msgid)
+                if name is not None:
+                    obs.received_wall_s[name] = now
                 if msgid == mavlink.HEARTBEAT:
                     msg = mavlink.decode_frame(self._codec, frame)
                     obs.heartbeat = True
