@@ -187,6 +187,21 @@ def test_values_are_clamped_to_px4_ranges(rig):
     assert message.zgyro == pytest.approx(1.0)
 
 
+def test_an_answer_stamped_in_the_future_answers_no_later_step(rig):
+    sim, sensors, link, peer, lockstep = rig
+    lockstep.run_for(0.1)
+    assert link.actuators_flowing
+    handled = link.stats.actuator_msgs
+    peer.send(peer.actuators(2**62))   # a bogus time, far ahead of any step sent
+    deadline = time.monotonic() + 5
+    while link.stats.actuator_msgs == handled and time.monotonic() < deadline:
+        link.poll()
+    link.send_sensor_frame(sensors[0].sample(sim.state(0), sim.time_us + sim.step_us))
+    assert not link.answered(), "the lockstep would no longer wait for the autopilot"
+    lockstep.run_for(0.1)   # and it still runs in step with the real answers
+    assert lockstep.stats.timeouts == 0 and link.answered()
+
+
 def test_garbage_and_split_frames_do_not_stop_the_link(rig):
     sim, sensors, link, peer, lockstep = rig
     lockstep.pumps.clear()

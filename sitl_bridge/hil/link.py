@@ -74,6 +74,9 @@ def _i16(value: float) -> int:
     return -_INT16 if value < -_INT16 else _INT16 if value > _INT16 else int(round(value))
 
 
+_MAX_INTERVAL_US = 2**31 - 1  # a longer interval asked for means "hardly ever"; keeps it a machine int
+
+
 def _motor_value(value: float) -> float:
     return 0.0 if value != value or value < 0.0 else 1.0 if value > 1.0 else value
 
@@ -419,7 +422,9 @@ class HilLink:
             self.stats.stale_actuator_msgs += 1
             if time_usec < self._last_reply_wire_us:
                 return  # older than what we already applied: out of order, drop
-        self._last_reply_wire_us = max(self._last_reply_wire_us, time_usec)
+        # an answer stamped after the last step sent answers that step, not later ones (a bogus
+        # time must not make every later step look answered and the lockstep run free)
+        self._last_reply_wire_us = max(self._last_reply_wire_us, min(time_usec, self._last_sent_wire_us))
         if mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
             if not (0.0 <= u1 <= 1.0 and 0.0 <= u2 <= 1.0 and 0.0 <= u3 <= 1.0 and 0.0 <= u4 <= 1.0):
                 # out of range or NaN (rare): limit each
@@ -438,9 +443,12 @@ class HilLink:
             frame.payload
         )
         self.stats.commands += 1
-        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and int(p1) == mavlink.HIL_STATE_QUATERNION \
+        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and p1 == mavlink.HIL_STATE_QUATERNION \
                 and self.ground_truth:
-            interval = int(p2)
+            if not math.isfinite(p2):
+                log.debug("vehicle %d: ignoring a HIL_STATE_QUATERNION interval of %s", self.instance, p2)
+                return
+            interval = int(max(-1.0, min(p2, _MAX_INTERVAL_US)))
             if interval == INTERVAL_DEFAULT:
                 interval = self.default_state_interval_us
             self.state_interval_us = interval if interval > 0 else (
