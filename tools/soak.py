@@ -1,13 +1,24 @@
 #!/usr/bin/env python3
-"""Soak test (not in CI): `sitl-bridge train --watchdog` for N minutes while a random fault is
-injected every few episodes; reports faults injected, recoveries and episodes lost/duplicated.
+"""Soak test (not in CI: minutes long): `sitl-bridge train --watchdog` for N minutes while a
+random fault is injected every few episodes; reports faults injected, recoveries and episodes
+lost or duplicated.
 
-    python3 tools/soak.py --minutes 5 [--every 3] [--world worlds/empty.yaml] [--out /tmp/soak]
+Run from the repository root (it trains on the `direct` backend; a few minutes on a laptop):
 
-Faults: SIGKILL of the training child, SIGSTOP (frozen), garbage appended to episodes.jsonl's last
-line (then SIGKILL, so the resume must notice it), a deleted replay shard (then SIGKILL).
+    python3 tools/soak.py --minutes 5 [--every 3] [--world worlds/empty.yaml] [--out /tmp/soak] [--seed 0]
+
+Faults, one at random each `--every` episodes once the restarted child has beaten: SIGKILL of
+the training child, SIGSTOP (frozen: the watchdog's `--freeze-timeout 10` must notice), garbage
+appended to episodes.jsonl's last line (then SIGKILL, so the resume must notice it), a deleted
+replay shard (then SIGKILL).
+
+What it checks (exit 0 only when all hold): the episode log, read after the soak, holds every
+episode index from 0 to the last exactly once (none lost, none flown twice by a resume), and
+the watchdog restarted the child at least once per injected fault (the last may still be
+pending when the time is up). It prints the counts: faults per kind, restarts per reason,
+episodes completed, missing and duplicated indices, the watchdog's exit code. The run directory
+(`--out`, default a fresh temp dir) keeps the run and `soak-watchdog.log` for a look after.
 """
-
 from __future__ import annotations
 
 import argparse
