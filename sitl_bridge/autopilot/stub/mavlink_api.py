@@ -7,9 +7,11 @@ configured remote port until a valid frame arrives, then to the first address th
 Frames from any other address are still handled and answered at that address (acks,
 parameters, requested messages), but they do not redirect the telemetry. Handover: once the
 client has sent no valid frame for `CLIENT_TIMEOUT_WALL_S` (2.5 s of wall time, PX4's heartbeat
-timeout; MAVSDK sends a heartbeat every second), the next sender becomes the client. Telemetry streams run on SIMULATED time (the autopilot's clock); only the keep-alive
-HEARTBEAT looks at the wall clock: MAVSDK drops a vehicle after 3 s of wall time without
-one, and while the simulation is held simulated time stands still.
+timeout; MAVSDK sends a heartbeat every second), the next sender becomes the client.
+
+Telemetry streams run on SIMULATED time (the autopilot's clock); only the keep-alive HEARTBEAT
+looks at the wall clock: MAVSDK drops a vehicle after 3 s of wall time without one, and while
+the simulation is held simulated time stands still.
 
 `pump()` never blocks: it reads every waiting datagram, handles it, and sends what is due.
 Garbage datagrams are counted in `stats` and ignored.
