@@ -33,6 +33,7 @@ COMMAND_MODULES = (
     "rules",
     "distill",
     "replay",
+    "export",
 )
 
 

@@ -21,6 +21,7 @@ import safetensors.torch
 import torch
 
 from sitl_bridge.rl.atomic import atomic_write_bytes, fsync_dir
+from sitl_bridge.rl.policy_file import POLICY_FILE, PolicyFileError, is_policy_file, read_policy
 
 FORMAT = "sitl_bridge.checkpoint/1"
 CHECKPOINT_DIR = "checkpoints"
@@ -165,40 +166,57 @@ def restore_newest(directory: str | Path,
 
 def best_checkpoint(run_dir: str | Path) -> Path:
     """The run's best checkpoint (`best.safetensors`) when the trainer kept one, else the run
-    directory itself (its newest valid checkpoint, as `resolve_checkpoint` reads it)."""
+    directory itself (its policy export or newest valid checkpoint, as `resolve_checkpoint` reads it)."""
     best = Path(run_dir) / BEST_CHECKPOINT
     return best if best.is_file() else Path(run_dir)
 
 
+def load_network_file(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """A training checkpoint or a policy file (`rl/policy_file.py`), verified; a policy file's
+    tensors carry the `online.` prefix and its state says `policy_only`."""
+    if is_policy_file(path):
+        try:
+            return read_policy(path)
+        except PolicyFileError as exc:
+            raise CheckpointCorrupt(str(exc)) from None
+    return load_checkpoint(path)
+
+
 def resolve_checkpoint(path: str | Path, *, latest: bool = False) -> tuple[Path, dict[str, torch.Tensor], dict[str, Any]]:
-    """A checkpoint file, or a run directory's result: its best greedy checkpoint
-    (`best.safetensors`) when it has a sound one and `latest` is False, else the newest valid
-    checkpoint of the run (or of a `checkpoints/` folder), loaded and verified. Read-only:
-    nothing is quarantined."""
+    """The network behind a checkpoint file, a policy file, or a run directory. A run directory
+    gives its best greedy network (`best.safetensors`, a checkpoint or its policy-only
+    replacement, else the policy export `policy.safetensors`) when `latest` is False, else (or
+    when it has neither) the newest valid checkpoint of the run (or of a `checkpoints/` folder);
+    a slimmed run with no checkpoint left gives its policy export even with `latest`. Loaded and
+    verified; read-only: nothing is quarantined."""
     return open_checkpoint(path, lambda file, tensors, state: (file, tensors, state), latest=latest)
 
 
 def open_checkpoint(path: str | Path, use: Callable[[Path, dict[str, torch.Tensor], dict[str, Any]], T], *,
                     latest: bool = False) -> T:
-    """`use(file, tensors, state)` of the checkpoint `resolve_checkpoint` picks; when that one is
+    """`use(file, tensors, state)` of the network `resolve_checkpoint` picks; when that one is
     unusable (damaged, or `use` raises CheckpointCorrupt: its content does not fit), of the next
-    one in the same order (best, then newest to oldest). A checkpoint file given by name has
-    no fallback: its problem is the CheckpointError. Read-only: nothing is quarantined."""
+    one in the same order (best, policy export, then newest to oldest checkpoint). A file given
+    by name has no fallback: its problem is the CheckpointError. Read-only: nothing is
+    quarantined."""
     path = Path(path)
     if path.is_file():
-        return use(path, *load_checkpoint(path))
-    candidates = []
-    best = path / BEST_CHECKPOINT
-    if not latest and best.is_file():
-        candidates.append(best)
+        return use(path, *load_network_file(path))
+    candidates = [] if latest else [path / BEST_CHECKPOINT, path / POLICY_FILE]
+    candidates = [c for c in candidates if c.is_file()]
     folder = path / CHECKPOINT_DIR if (path / CHECKPOINT_DIR).is_dir() else path
     if not folder.is_dir():
-        raise CheckpointError(f"{path}: neither a checkpoint file nor a run directory")
+        raise CheckpointError(f"{path}: neither a checkpoint or policy file nor a run directory")
     problems: list[str] = []
     for candidate in [*candidates, *list_checkpoints(folder)]:
         try:
-            return use(candidate, *load_checkpoint(candidate))
+            return use(candidate, *load_network_file(candidate))
         except CheckpointCorrupt as exc:
             problems.append(str(exc))
             log.warning("skipping unusable checkpoint: %s", exc)
+    if latest and (path / POLICY_FILE).is_file():
+        try:
+            return use(path / POLICY_FILE, *load_network_file(path / POLICY_FILE))
+        except CheckpointCorrupt as exc:
+            problems.append(str(exc))
     raise CheckpointError(f"{path}: no usable checkpoint" + (f" ({'; '.join(problems)})" if problems else ""))

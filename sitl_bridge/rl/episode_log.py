@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from sitl_bridge.rl.atomic import append_durably
+from sitl_bridge.rl.episode_files import open_log
 
 OUTCOMES = ("goal", "crash", "out", "timeout")
 
@@ -96,12 +97,13 @@ class EpisodeLog:
 
 
 def read_records(path: str | Path, warn=None) -> list[dict]:  # noqa: ANN001 - callable(str)
-    """Every complete record of an episode log. A torn last line is ignored; a line that is not
-    a JSON record (damage) is skipped and reported through `warn` (default: logging)."""
+    """Every complete record of an episode log (plain, or its `.xz`: `rl/episode_files.py`). A
+    torn last line is ignored; a line that is not a JSON record (damage) is skipped and reported
+    through `warn` (default: logging)."""
     import logging
 
     records: list[dict] = []
-    with open(path, "rb") as handle:
+    with open_log(path) as handle:
         for number, raw in enumerate(handle, start=1):
             if not raw.endswith(b"\n"):
                 break

@@ -26,7 +26,6 @@ Definitions (also printed in RESULTS.md):
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import json
 import logging
@@ -39,6 +38,7 @@ from typing import Any
 
 from sitl_bridge.cores import core_counter, pin_next_core
 from sitl_bridge.rl.atomic import atomic_write_json, atomic_write_text
+from sitl_bridge.rl.episode_files import log_exists, open_log
 from sitl_bridge.rl.experiment import (
     ComparisonSpec,
     Experiment,
@@ -87,17 +87,15 @@ class EvalTask:
     autopilot: str
 
 
-def _file_digest(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def evaluate_run(task: EvalTask) -> dict[str, Any]:
     """Greedy evaluation of the run's best checkpoint on the report's evaluation seeds; cached in
     the job folder, reused while the checkpoint, episodes and seeds are the same."""
     from sitl_bridge.rl.checkpoint import best_checkpoint, resolve_checkpoint
+    from sitl_bridge.rl.policy_file import network_digest, online_tensors
 
-    checkpoint_file, _, state = resolve_checkpoint(best_checkpoint(task.run_dir))
-    key = {"checkpoint": checkpoint_file.name, "sha256": _file_digest(checkpoint_file),
+    checkpoint_file, tensors, state = resolve_checkpoint(best_checkpoint(task.run_dir))
+    # the network's digest, not the file's: its policy-only export keeps the cached evaluation
+    key = {"checkpoint": checkpoint_file.name, "sha256": network_digest(online_tensors(tensors), state["network"]),
            "episodes": task.episodes, "eval_seed": EVAL_SEED_BASE + task.seed}
     cache = Path(task.job_dir) / GREEDY_FILE
     if cache.is_file():
@@ -137,8 +135,10 @@ def evaluate_runs(tasks: list[EvalTask], workers: int) -> list[dict[str, Any]]:
 
 def _jsonl(path: Path) -> list[dict]:
     rows = []
-    if path.is_file():
-        for line in path.read_text(errors="replace").splitlines():
+    if log_exists(path):  # a slimmed run keeps its episode log as .xz
+        with open_log(path) as handle:
+            text = handle.read().decode(errors="replace")
+        for line in text.splitlines():
             try:
                 rows.append(json.loads(line))
             except json.JSONDecodeError:

@@ -24,6 +24,7 @@ from sitl_bridge.envs.scenario import Scenario, load_scenario
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.physics.simulation import Simulation
 from sitl_bridge.rl.drones_env import DronesEnv, scenario_env_factory
+from sitl_bridge.rl.episode_files import log_exists
 from sitl_bridge.rl.episode_log import read_records
 from sitl_bridge.rl.pictures import EpisodePicture
 from sitl_bridge.rl.rollout import Trace, eval_seeds, position_of, record_step
@@ -82,7 +83,7 @@ def logged_episode(run_dir: str | Path, episode: int) -> list[dict]:
     if folder is None:
         raise ConfigError(f"{run_dir}: not a run directory (no run.json)")
     log = folder / EPISODES_FILE
-    records = read_records(log) if log.is_file() else []
+    records = read_records(log) if log_exists(log) else []
     if not records:
         raise ValueError(f"{log}: holds no logged episodes")
     mine = {r["drone"]: r for r in records if r["episode"] == episode}  # the last record of a drone wins

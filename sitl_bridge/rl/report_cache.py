@@ -1,11 +1,10 @@
 """Caches of the report step's own flights (behaviour, rules, trees, pictures): a result is kept
-in a JSON file beside what it was made from and reused while its key (the best checkpoints' digests,
+in a JSON file beside what it was made from and reused while its key (the best networks' digests,
 the settings, the code's version) is the same, so rebuilding RESULTS.md after training one more
 part of an experiment only flies the scenarios whose runs changed."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Any
@@ -17,11 +16,14 @@ CACHE_FORMAT = 1
 
 
 def checkpoint_digest(run_dir: str | Path) -> str:
-    """sha256 of the checkpoint a run's greedy policy flies (its best, else its newest)."""
+    """sha256 of the network a run's greedy policy flies (its best, else its newest): of its
+    tensors and shape, not of the file, so a run whose checkpoint was replaced by its policy-only
+    export (`rl/policy_export.py`) keeps its cached results."""
     from sitl_bridge.rl.checkpoint import resolve_checkpoint
+    from sitl_bridge.rl.policy_file import network_digest, online_tensors
 
-    file, _, _ = resolve_checkpoint(run_dir)
-    return hashlib.sha256(file.read_bytes()).hexdigest()
+    _, tensors, state = resolve_checkpoint(run_dir)
+    return network_digest(online_tensors(tensors), state["network"])
 
 
 def cache_key(**parts: Any) -> dict[str, Any]:
