@@ -29,9 +29,12 @@ from typing import Any, TypeVar
 from numba import njit
 from numba.extending import register_jitable
 
+from sitl_bridge import compile_notice
+
 F = TypeVar("F", bound=Callable[..., Any])
 
 __all__ = ["dual", "kernel"]
+compile_notice.install()  # a cold cache says so before it compiles for minutes
 
 
 def dual(fn: F) -> F:

@@ -312,3 +312,37 @@ def test_train_only_leaves_the_report_as_it_is(finished, tmp_path) -> None:
     assert cli(["experiment", str(finished[0]), "--out", str(out), "--workers", "1", "--train-only"]) == 0
     assert (out / "runs" / "scenarios" / "empty" / "seed1" / "done.json").is_file()  # the run was finished
     assert {p: t for p, t in _mtimes(out).items() if p in report} == report  # RESULTS.md, JSON, figures untouched
+
+
+def test_report_of_a_slimmed_tree_is_the_same_without_flying_again(finished, tmp_path) -> None:
+    """tools/slim_results.py on a copy of the results, whose caches were keyed the older way (on
+    the checkpoint file's sha256): the report rebuilt from the slim tree gives the same results.json
+    and flies nothing again (every cached evaluation, behaviour, rule and tree is reused)."""
+    import hashlib
+    import subprocess
+    import sys
+
+    from sitl_bridge.rl.checkpoint import load_checkpoint
+    from sitl_bridge.rl.policy_file import network_digest, online_tensors
+
+    file, first = finished
+    out = tmp_path / "out"
+    shutil.copytree(first, out)
+    for best in out.rglob("best.safetensors"):  # caches as the file-keyed code wrote them
+        tensors, state = load_checkpoint(best)
+        old, new = hashlib.sha256(best.read_bytes()).hexdigest(), network_digest(online_tensors(tensors), state["network"])
+        for cache in out.rglob("*.json"):
+            cache.write_text(cache.read_text().replace(new, old))
+    runs_bytes = lambda: sum(p.stat().st_size for p in (out / "runs").rglob("*") if p.is_file())  # noqa: E731
+    before = runs_bytes()
+
+    slim = subprocess.run([sys.executable, str(REPO / "tools" / "slim_results.py"), str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert slim.returncode == 0, slim.stderr
+    assert not list(out.rglob("episodes.jsonl")) and not list(out.rglob("checkpoints"))
+    assert runs_bytes() < before / 4, (runs_bytes(), before)
+    caches = {p: p.read_bytes() for p in out.rglob("*.json") if p.name not in ("results.json", "experiment.json")}
+
+    assert cli(["experiment", str(file), "--out", str(out), "--report-only"]) == 0
+    assert json.loads((out / "results.json").read_text()) == json.loads((first / "results.json").read_text())
+    assert {p: p.read_bytes() for p in caches} == caches  # nothing flown and cached again

@@ -49,3 +49,20 @@ def test_dual_functions_stay_plain_python() -> None:
 
     assert type(wrap_pi).__name__ == "function" and type(quat_rotate_t).__name__ == "function"
     assert quat_rotate_t((1.0, 0.0, 0.0, 0.0), (1.0, 2.0, 3.0)) == (1.0, 2.0, 3.0)
+
+
+def _run_with_stderr(tmp_path: Path) -> str:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).resolve().parents[1])])}
+    env.pop("NUMBA_CACHE_DIR", None)
+    out = subprocess.run([sys.executable, "-c", "import user; print(user.twice_scaled(1.5))"], cwd=tmp_path,
+                         env=env, capture_output=True, text=True, timeout=120, check=True)
+    return out.stderr
+
+
+def test_a_real_compile_says_so_in_one_line_and_a_warm_run_says_nothing(tmp_path: Path) -> None:
+    from sitl_bridge.compile_notice import NOTICE
+
+    (tmp_path / "helper.py").write_text(HELPER.format(factor=3.0))
+    (tmp_path / "user.py").write_text(KERNEL)
+    assert _run_with_stderr(tmp_path).splitlines() == [NOTICE]  # cold cache: compiles
+    assert _run_with_stderr(tmp_path) == ""  # warm: loads the cached kernel

@@ -266,7 +266,7 @@ def _run_policy(args: argparse.Namespace) -> int:
             videos = EpisodeVideos.into_file(args.video, load_scenario(world).task.render.fps)
         factory = scenario_env_factory(world, args.autopilot, speed_factor=args.speed_factor,
                                        instance_base=args.instance_base, px4_bin=args.px4_bin, gui=args.gui,
-                                       render_mode="rgb_array" if videos is not None else None)
+                                       render_mode="rgb_array_list" if videos is not None else None)
         env = DronesEnv(factory(args.seed))
         try:
             traces = rollout(env, policy, eval_seeds(args.seed, args.episodes), on_episode=_print_episode,

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("train", help="train a DQN agent on a scenario (resumable)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("world", nargs="?", help="scenario file (worlds/*.yaml); not needed with --resume")
+    parser.add_argument("world", nargs="?", help="scenario file, or a shipped world by name (obstacle); not needed with --resume")
     add_env_autopilot_argument(parser)
     parser.add_argument("--standby", action="store_true",
                         help="px4: keep a standby PX4 booted to take over crashed episodes (faster "
@@ -79,6 +79,7 @@ def main(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     # torch and the simulator load here, not when the CLI lists its commands.
     from sitl_bridge.rl.checkpoint import CheckpointError
+    from sitl_bridge.rl.train_plan import plan_lines
     from sitl_bridge.rl.trainer import ShapeMismatch
 
     try:
@@ -90,6 +91,8 @@ def _train(args: argparse.Namespace) -> int:
         resumed = trainer.episode > 0
         print(f"run directory: {trainer.run_dir}" + (f" (resuming after episode {trainer.episode})"
                                                      if resumed else ""), file=sys.stderr)
+        for line in plan_lines(trainer.config, trainer.episode):
+            print(line, file=sys.stderr)
         result = trainer.train()
         print(f"this session: {result.episodes_this_session} episodes ({result.steps_this_session} steps) in "
               f"{result.wall_time_s:.1f} s; run total: {result.episodes} of {trainer.config.episodes} episodes "
@@ -121,7 +124,9 @@ def _build(args: argparse.Namespace) -> Trainer:
     if not args.world:
         raise ConfigError("command line: WORLD: expected a scenario file (or --resume RUN_DIR), got nothing")
     from sitl_bridge.rl.scenario_file import check_scenario_file
+    from sitl_bridge.world.lookup import world_file
 
+    args.world = str(world_file(args.world))  # a shipped world by bare name; run.json records the file
     check_scenario_file(args.world, need_task=True)  # every section, before a run directory exists
     if args.standby:
         from sitl_bridge.envs.options import EnvOptions

@@ -24,7 +24,7 @@ ESTIMATORS = ("sensors", "ground_truth")
   available with `px4` (it always runs EKF2)."""
 
 
-RENDER_MODES = (None, "rgb_array", "human")
+RENDER_MODES = (None, "rgb_array", "rgb_array_list", "human")
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from sitl_bridge.client.actions import NUM_ACTIONS
 from sitl_bridge.envs.backends.base import Backend
 from sitl_bridge.envs.manual import describe
 from sitl_bridge.envs.options import EnvOptions
-from sitl_bridge.envs.render import EnvRenderer
+from sitl_bridge.envs.render import EnvRenderer, FrameList
 from sitl_bridge.envs.runner import EpisodeRunner
 from sitl_bridge.envs.scenario import Scenario, load_scenario
 from sitl_bridge.envs.single import observation_space
@@ -49,7 +49,7 @@ class SitlParallelEnv(ParallelEnv):
     * v0: initial version (thesis scenarios TE and TW; any scenario file works).
     """
 
-    metadata = {"render_modes": ["rgb_array", "human"], "name": "sitl_bridge_parallel_v0",
+    metadata = {"render_modes": ["rgb_array", "rgb_array_list", "human"], "name": "sitl_bridge_parallel_v0",
                 "render_fps": RenderConfig().fps}
 
     def __init__(self, scenario: str | Path | Scenario, *, backend: Backend | None = None,
@@ -68,6 +68,10 @@ class SitlParallelEnv(ParallelEnv):
         self.metadata = {**self.metadata, "render_fps": self.scenario.task.render.fps}
         self._renderer = EnvRenderer(self.scenario.world, self.scenario.task.render, self.backend,
                                      self.render_mode) if self.render_mode else None
+        self._frames = FrameList(self._renderer, self._followed, lambda: self.runner.snapshot) \
+            if self.render_mode == "rgb_array_list" else None
+        if self._frames is not None:
+            self.runner.on_frame = self._frames.capture
 
     @functools.cache  # noqa: B019 - PettingZoo's idiom: one space per agent
     def observation_space(self, agent: str) -> spaces.Box:
@@ -85,6 +89,8 @@ class SitlParallelEnv(ParallelEnv):
         self.agents = list(self.possible_agents)
         if self.render_mode == "human":
             self.render()
+        if self._frames is not None:
+            self._frames.restart()
         return ({a: results[self._index[a]].observation for a in self.agents},
                 {a: results[self._index[a]].info for a in self.agents})
 
@@ -114,8 +120,12 @@ class SitlParallelEnv(ParallelEnv):
         camera, `scene` by default); `human`: the GUI camera on the first drone, returns None."""
         if self._renderer is None:
             return None
-        follow = 0 if self.scenario.task.render.camera == "follow" else None
-        return self._renderer.render(follow, self.runner.snapshot)
+        if self._frames is not None:
+            return self._frames.take()
+        return self._renderer.render(self._followed(), self.runner.snapshot)
+
+    def _followed(self) -> int | None:
+        return 0 if self.scenario.task.render.camera == "follow" else None
 
     def state(self) -> np.ndarray:
         """Global state: every drone's observation, concatenated in `possible_agents` order."""

@@ -4,6 +4,8 @@ backend's simulation (`physics.render.SceneCamera`), and the camera of `render_m
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pybullet as p
 
@@ -28,7 +30,7 @@ class EnvRenderer:
     def render(self, follow: int | None, snapshot: Snapshot | None) -> np.ndarray | None:
         """The frame for `render()`: an RGB array (`rgb_array`), or None after pointing the GUI
         camera at the drone (`human`)."""
-        if self.mode == "rgb_array":
+        if self.mode in ("rgb_array", "rgb_array_list"):
             return self.backend.with_simulation(lambda sim: self._frame(sim, follow, snapshot))
         if self.mode == "human":
             self.backend.with_simulation(lambda sim: self._point_gui(sim, follow))
@@ -58,3 +60,31 @@ class EnvRenderer:
         target = sim.state(follow or 0).position_enu_m
         p.resetDebugVisualizerCamera(self.config.distance_m or 6.0, self.config.yaw_deg, self.config.pitch_deg,
                                      [float(v) for v in target], physicsClientId=sim.client_id)
+
+
+class FrameList:
+    """`render_mode="rgb_array_list"`: the frames since the last `render()`, one after the
+    reset and one every `watched_flight.FRAME_PERIOD_S` of simulated time through each action
+    (the runner calls `capture` while it flies), so a video plays the flight at its own pace."""
+
+    def __init__(self, renderer: EnvRenderer, follow: Callable[[], int | None],
+                 snapshot: Callable[[], Snapshot | None]) -> None:
+        self.renderer = renderer
+        self.follow = follow
+        self.snapshot = snapshot
+        self.frames: list[np.ndarray] = []
+
+    def capture(self) -> None:
+        frame = self.renderer.render(self.follow(), self.snapshot())
+        if frame is not None:
+            self.frames.append(frame)
+
+    def restart(self) -> None:
+        """A new episode: drop what the last one left, keep its first frame."""
+        self.frames = []
+        self.capture()
+
+    def take(self) -> list[np.ndarray]:
+        frames, self.frames = self.frames, []
+        return frames
+

@@ -8,7 +8,7 @@ phase), then builds each drone's view, observation, reward terms and episode end
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,6 +24,7 @@ from sitl_bridge.envs.priority import priorities
 from sitl_bridge.envs.scenario import Scenario
 from sitl_bridge.envs.task import EndConfig
 from sitl_bridge.envs.view import DroneView
+from sitl_bridge.envs.watched_flight import fly_watched
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.frames import quat_to_euler
 from sitl_bridge.sensors.lidar import LidarScan
@@ -71,6 +72,8 @@ class EpisodeRunner:
         self.num_drones = scenario.num_drones
         self.step_count = 0
         self.done = [False] * self.num_drones
+        self.on_frame: Callable[[], None] | None = None
+        """Called every `watched_flight.FRAME_PERIOD_S` of simulated time through each action (video frames)."""
         self.outcomes: list[str | None] = [None] * self.num_drones
         self._ended_truncated = [False] * self.num_drones
         self._snapshot: Snapshot | None = None
@@ -133,11 +136,11 @@ class EpisodeRunner:
                 code, config=config, drone=i,
                 position_enu_m=np.asarray(before.states[i].position_enu_m, dtype=float),
                 start_enu_m=self._starts[i], goal_enu_m=self._goals[i]))
-        snapshot = self.backend.fly(velocities, config.duration_s)
-        collided = list(snapshot.collided)
+        snapshot, collided = fly_watched(self.backend, velocities, config.duration_s, self.on_frame)
         if config.zero_velocity_s > 0.0:
-            snapshot = self.backend.fly([np.zeros(3)] * self.num_drones, config.zero_velocity_s)
-            collided = [a or b for a, b in zip(collided, snapshot.collided, strict=True)]
+            snapshot, stopped = fly_watched(self.backend, [np.zeros(3)] * self.num_drones, config.zero_velocity_s,
+                                            self.on_frame)
+            collided = [a or b for a, b in zip(collided, stopped, strict=True)]
         self._snapshot = snapshot
         self.step_count += 1
         crashed, by_drones_only = self._crashes(snapshot, collided)

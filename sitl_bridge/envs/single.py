@@ -13,7 +13,7 @@ from sitl_bridge.client.actions import NUM_ACTIONS
 from sitl_bridge.envs.backends.base import Backend
 from sitl_bridge.envs.manual import describe
 from sitl_bridge.envs.options import EnvOptions
-from sitl_bridge.envs.render import EnvRenderer
+from sitl_bridge.envs.render import EnvRenderer, FrameList
 from sitl_bridge.envs.runner import EpisodeRunner
 from sitl_bridge.envs.scenario import Scenario, load_scenario
 from sitl_bridge.physics.render import RenderConfig
@@ -111,7 +111,7 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     * v0: initial version (thesis scenarios E, ER, O, OR, W, street; backends direct/stub/px4).
     """
 
-    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": RenderConfig().fps}
+    metadata = {"render_modes": ["rgb_array", "rgb_array_list", "human"], "render_fps": RenderConfig().fps}
 
     def __init__(self, scenario: str | Path | Scenario, *, drone: int = 0, backend: Backend | None = None,
                  options: EnvOptions | None = None, **option_values: Any) -> None:
@@ -129,6 +129,10 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
         self.metadata = {**self.metadata, "render_fps": self.scenario.task.render.fps}
         self._renderer = EnvRenderer(self.scenario.world, self.scenario.task.render, self.backend,
                                      self.render_mode) if self.render_mode else None
+        self._frames = FrameList(self._renderer, lambda: self.drone, lambda: self.runner.snapshot) \
+            if self.render_mode == "rgb_array_list" else None
+        if self._frames is not None:
+            self.runner.on_frame = self._frames.capture
 
     def reset(self, *, seed: int | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -140,6 +144,8 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
         mine = results[self.drone]
         if self.render_mode == "human":
             self.render()
+        if self._frames is not None:
+            self._frames.restart()
         return mine.observation, mine.info
 
     def step(self, action: int | np.integer) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -153,9 +159,12 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
 
     def render(self) -> np.ndarray | None:
         """`rgb_array`: the current frame (height x width x 3, uint8; camera from the scenario's
-        `task.render`); `human`: points the GUI's camera at the drone and returns None."""
+        `task.render`); `rgb_array_list`: the frames since the last call, every 0.1 s of simulated
+        time (`envs/render.FrameList`); `human`: points the GUI's camera at the drone and returns None."""
         if self._renderer is None:
             return None
+        if self._frames is not None:
+            return self._frames.take()
         return self._renderer.render(self.drone, self.runner.snapshot)
 
     def describe(self) -> str:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as p
 
+from sitl_bridge.frames import quat_to_euler
 from sitl_bridge.physics.simulation import Simulation
 
 CAMERA_MODES = ("scene", "follow")
@@ -26,6 +27,10 @@ WORKSPACE_EDGE_M = 0.04
 RAY_RGB = (255, 200, 0)
 
 
+FOLLOW_DISTANCE_M = 4.0
+"""Default follow-camera distance: a 0.5 m drone is ~50 px wide in a 512-px, 60-degree frame."""
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     """Camera of a scenario (`task.render:` in its YAML; every key optional)."""
@@ -33,12 +38,14 @@ class RenderConfig:
     width: int = 512
     height: int = 384
     """Pixels; multiples of 16 keep video encoders from resizing."""
-    camera: str = "scene"
-    """`scene`: frames the whole workspace; `follow`: behind and above the drone."""
+    camera: str = "follow"
+    """`follow` (default): behind and above the drone, looking along its heading, so the drone
+    is tens of pixels wide; `scene`: frames the whole workspace (the drone a few pixels)."""
     distance_m: float | None = None
-    """Camera distance from its target (default: fits the workspace / 6 m when following)."""
+    """Camera distance from its target (default: fits the workspace / `FOLLOW_DISTANCE_M` when following)."""
     yaw_deg: float = 30.0
-    """Camera yaw about the vertical (pybullet convention: 0 looks along +y)."""
+    """Scene camera's yaw about the vertical (pybullet convention: 0 looks along +y); the follow
+    camera takes the drone's heading instead."""
     pitch_deg: float = -35.0
     """Negative looks down."""
     target_m: tuple[float, float, float] | None = None
@@ -46,8 +53,9 @@ class RenderConfig:
     fov_deg: float = 60.0
     lidar_rays: bool = False
     """Draw the lidar rays of the followed drone (or of every drone in scene mode)."""
-    fps: int = 4
-    """Frames per second of recorded videos (one frame per env step of 1 s is 1 fps of sim)."""
+    fps: int = 10
+    """Frames per second of recorded videos: with frames every 0.1 s of simulated time
+    (`render_mode="rgb_array_list"`), 10 plays the flight at its own pace."""
 
 
 class SceneCamera:
@@ -83,8 +91,13 @@ class SceneCamera:
         low = np.asarray(self.sim.world.workspace.min_m, dtype=float)
         high = np.asarray(self.sim.world.workspace.max_m, dtype=float)
         if config.camera == "follow":
-            target = self.sim.state(follow or 0).position_enu_m
-            distance = config.distance_m or 6.0
+            state = self.sim.state(follow or 0)
+            target = state.position_enu_m
+            distance = config.distance_m or FOLLOW_DISTANCE_M
+            # behind the drone: pybullet's camera at yaw 0 looks along +y (ENU north, heading 90 deg)
+            heading_deg = math.degrees(quat_to_euler(state.quaternion_enu_flu)[2])
+            return p.computeViewMatrixFromYawPitchRoll([float(v) for v in target], distance, heading_deg - 90.0,
+                                                      config.pitch_deg, 0.0, 2)
         else:
             target = np.asarray(config.target_m if config.target_m is not None else (low + high) / 2.0)
             span = float(np.linalg.norm(high - low))

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from sitl_bridge.errors import ConfigError, Node, load_yaml
+from sitl_bridge.world.lookup import world_file
 
 OPTIMIZERS = ("adam", "adamax", "sgd", "rmsprop")
 LOSSES = ("mse", "huber", "mae")
@@ -47,7 +48,8 @@ class TrainConfig:
     experiment: str = "dqn"
     """Experiment name, the second part of the run directory name."""
     episodes: int = 1000
-    """Training episodes (the run's budget)."""
+    """The most training episodes the run takes (a cap: with stop_on_success and eval_every set,
+    training stops at the first periodic greedy evaluation that reaches it)."""
     gamma: float = 0.9
     """Discount factor of future rewards."""
     epsilon_max: float = 1.0
@@ -246,7 +248,7 @@ def parse_train_node(node: Node, base: TrainConfig | None = None) -> TrainConfig
 
 def load_train_config(world_path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """The `train:` section of a scenario file (defaults where absent), then `overrides`."""
-    root = load_yaml(world_path)
+    root = load_yaml(world_file(world_path))
     config = parse_train_node(root.get("train", None) if isinstance(root.value, dict) else
                               Node(None, str(world_path), "train"))
     return apply_overrides(config, overrides or {})

@@ -141,5 +141,5 @@ def evaluate_in_world(policy: Callable[[np.ndarray], int], world: str | Path, *,
     from sitl_bridge.rl.video import EpisodeVideos
 
     videos = EpisodeVideos.into_folder(video_dir, load_scenario(world).task.render.fps)
-    return evaluate_policy(policy, scenario_env_factory(world, autopilot, render_mode="rgb_array"),
+    return evaluate_policy(policy, scenario_env_factory(world, autopilot, render_mode="rgb_array_list"),
                            world=str(world), episodes=episodes, seed=seed, progress=progress, videos=videos)

@@ -63,6 +63,7 @@ from sitl_bridge.rl.replay import ReplayBuffer
 from sitl_bridge.rl.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
 from sitl_bridge.rl.rollout import Trace
 from sitl_bridge.rl.stats import wilson_interval
+from sitl_bridge.rl.train_plan import baseline_notice
 from sitl_bridge.rl.vector_collect import VectorCollector
 
 log = logging.getLogger(__name__)
@@ -429,6 +430,7 @@ class Trainer:
         if path.exists():
             with contextlib.suppress(ValueError, KeyError, TypeError):
                 return ConstantBaseline(**json.loads(path.read_text()))
+        print(baseline_notice(self.env.n_actions, self.config.eval_episodes), file=sys.stderr)
         baseline = constant_action_baseline(self.env, world=self.spec.world, episodes=self.config.eval_episodes,
                                             seed=self.spec.seed, progress=self.progress, beat=self.beat)
         atomic_write_json(path, baseline.to_dict())

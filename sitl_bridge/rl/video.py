@@ -45,9 +45,12 @@ class EpisodeVideos:
         Path(folder).mkdir(parents=True, exist_ok=True)
         return cls(lambda episode: Path(folder) / f"episode_{episode:04d}.mp4", fps)
 
-    def add(self, frame: np.ndarray | None) -> None:
-        """One frame (None is ignored: an env without rgb_array rendering)."""
-        if frame is not None:
+    def add(self, frame: np.ndarray | list[np.ndarray] | None) -> None:
+        """One frame, or the list of an `rgb_array_list` env (None is ignored: an env without
+        rgb_array rendering)."""
+        if isinstance(frame, list):
+            self.frames.extend(np.asarray(f, dtype=np.uint8) for f in frame)
+        elif frame is not None:
             self.frames.append(np.asarray(frame, dtype=np.uint8))
 
     def end_episode(self, episode: int) -> None:

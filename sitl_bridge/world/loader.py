@@ -12,6 +12,7 @@ from pathlib import Path
 
 from sitl_bridge.errors import NAME_MAX_CHARS, ConfigError, Node, load_yaml
 from sitl_bridge.world.clock import divides
+from sitl_bridge.world.lookup import world_file
 from sitl_bridge.world.schema import (
     SHAPE_KINDS,
     AlongPath,
@@ -38,7 +39,9 @@ LIDAR_GROUPS = ("horizontal", "up", "down")
 
 
 def load_world(path: str | Path) -> World:
-    """Load and validate a scenario file; raises `ConfigError` with a one-line message."""
+    """Load and validate a scenario file (a path, or a shipped world's bare name); raises
+    `ConfigError` with a one-line message."""
+    path = world_file(path)
     root = load_yaml(path)
     return parse_scenario(root, base_dir=Path(path).parent)
 

@@ -30,6 +30,20 @@ def resolve_world(name_or_path: str | os.PathLike[str]) -> Path:
     raise ConfigError(f"{name_or_path}: cannot find world file (searched {searched})")
 
 
+def world_file(name_or_path: str | os.PathLike[str]) -> str | os.PathLike[str]:
+    """What a command should open for a scenario argument: a shipped world by bare name
+    (`obstacle`, `obstacle.yaml`) through `resolve_world` when no such file is here, else the
+    argument itself (a path with folders, or one the OS refuses, is left for the reader to
+    report on)."""
+    path = Path(name_or_path)
+    try:
+        if path.is_file() or path.parent != Path("."):
+            return name_or_path
+    except (OSError, ValueError):  # a name too long for the OS, an embedded NUL: the reader says so
+        return name_or_path
+    return resolve_world(path)
+
+
 def default_world_path() -> Path:
     """worlds/empty.yaml of this installation (works from any working directory)."""
     return resolve_world(DEFAULT_WORLD)
@@ -51,4 +65,5 @@ def with_vehicle_count(world: World, count: int) -> World:
     return replace(world, vehicles=tuple(vehicles))
 
 
-__all__ = ["DEFAULT_WORLD", "EXTRA_VEHICLE_SPACING_M", "default_world_path", "resolve_world", "with_vehicle_count"]
+__all__ = ["DEFAULT_WORLD", "EXTRA_VEHICLE_SPACING_M", "default_world_path", "resolve_world", "with_vehicle_count",
+           "world_file"]
