@@ -10,7 +10,8 @@ PACKAGE = Path(__file__).resolve().parent.parent / "sitl_bridge"
 
 # Lowest first; modules in one group may import each other.
 LAYERS = (
-    ("errors", "data_paths", "frames", "jit", "lifetime", "cores", "mavlink", "mavlink_kernels", "ports"),
+    ("errors", "data_paths", "frames", "jit", "compile_notice", "lifetime", "cores", "mavlink", "mavlink_kernels",
+     "ports"),
     ("world",),
     ("physics",),
     ("sensors",),

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import subprocess
@@ -15,15 +16,25 @@ import pytest
 
 import sitl_bridge.envs  # noqa: F401  (registers the ids)
 from sitl_bridge import make_env, make_parallel_env
+from sitl_bridge.envs.scenario import Scenario, load_scenario
+from sitl_bridge.envs.single import SitlEnv
 
 REPO = Path(__file__).resolve().parent.parent
 WORLDS = REPO / "worlds"
 
 
+def _scene_camera(path: Path) -> Scenario:
+    """The scenario with the fixed camera over the whole workspace (the default follows the drone)."""
+    scenario = load_scenario(path)
+    render = dataclasses.replace(scenario.task.render, camera="scene")
+    return dataclasses.replace(scenario, task=dataclasses.replace(scenario.task, render=render))
+
+
 def test_rgb_array_frame_has_the_configured_shape_and_changes_where_the_drone_moves() -> None:
-    env = make_env(WORLDS / "obstacle.yaml", render_mode="rgb_array", seed=0, estimator="ground_truth")
+    env = SitlEnv(_scene_camera(WORLDS / "obstacle.yaml"), render_mode="rgb_array", seed=0, estimator="ground_truth")
     try:
-        assert env.metadata["render_modes"] == ["rgb_array", "human"] and env.render_mode == "rgb_array"
+        assert env.metadata["render_modes"] == ["rgb_array", "rgb_array_list", "human"]
+        assert env.render_mode == "rgb_array"
         env.reset(seed=0)
         before = env.render()
         config = env.scenario.task.render
@@ -44,19 +55,26 @@ def test_rgb_array_frame_has_the_configured_shape_and_changes_where_the_drone_mo
 def test_rendering_off_adds_nothing_to_the_simulation() -> None:
     plain = make_env(WORLDS / "obstacle.yaml", seed=0)
     drawn = make_env(WORLDS / "obstacle.yaml", seed=0, render_mode="rgb_array")
+    filmed = make_env(WORLDS / "obstacle.yaml", seed=0, render_mode="rgb_array_list")
     try:
         assert plain.render() is None
         assert not plain.backend.sim.visual and drawn.backend.sim.visual
         plain.reset(seed=3)
         drawn.reset(seed=3)
+        filmed.reset(seed=3)
         drawn.render()  # markers are visual only: they change nothing of the flight
+        assert len(filmed.render()) == 1  # the reset's frame
         for action in (3, 3, 6):
             a = plain.step(action)
             b = drawn.step(action)
+            c = filmed.step(action)  # flown in 0.1 s slices, a frame after each: the same flight
             np.testing.assert_allclose(a[0], b[0], atol=1e-6)
+            np.testing.assert_array_equal(a[0], c[0])
+            assert len(filmed.render()) == round(filmed.scenario.task.action.duration_s / 0.1)
     finally:
         plain.close()
         drawn.close()
+        filmed.close()
 
 
 def test_parallel_env_renders_the_whole_scenario() -> None:
