@@ -36,14 +36,14 @@ how it is rewarded, when an episode ends, what an action means). Example::
       render:                       # camera of render_mode="rgb_array" and videos (all optional)
         width: 512
         height: 384
-        camera: scene               # scene (frames the workspace) | follow (behind the drone)
-        distance_m: null            # default: fits the workspace (scene), 6 m (follow)
-        yaw_deg: 30
+        camera: follow              # follow (behind and above the drone, along its heading) | scene (the workspace)
+        distance_m: null            # default: 4 m (follow), fits the workspace (scene)
+        yaw_deg: 30                 # scene camera's yaw (the follow camera takes the drone's heading)
         pitch_deg: -35
         target_m: null              # scene camera's target (default: the workspace centre)
         fov_deg: 60
         lidar_rays: false           # draw the lidar rays
-        fps: 4                      # of recorded videos
+        fps: 10                     # of recorded videos (frames every 0.1 s of simulated time: its own pace)
 
 Unknown keys are errors (typos never pass silently); every error is one line naming the file and
 the key path (`sitl_bridge.errors.ConfigError`).

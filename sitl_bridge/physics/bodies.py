@@ -78,10 +78,7 @@ def create_vehicle(client: int, params: IrisParams, position_m: Vec3, yaw_rad: f
     """One rigid body per vehicle: the iris collision box with the iris mass and inertia."""
     half = [s / 2.0 for s in params.collision_box_m]
     col = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=client)
-    vis = -1
-    if visual:
-        vis = p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=(1.0, 0.55, 0.0, 1.0),  # bright: visible from afar
-                                  physicsClientId=client)
+    vis = _vehicle_visual(client, params, half) if visual else -1
     orientation = quaternion_to_pybullet(yaw_quaternion_enu_flu(yaw_rad))
     body = p.createMultiBody(params.mass_kg, col, vis, basePosition=list(position_m), baseOrientation=orientation,
                              physicsClientId=client)
@@ -90,3 +87,34 @@ def create_vehicle(client: int, params: IrisParams, position_m: Vec3, yaw_rad: f
                      angularDamping=0.0, activationState=p.ACTIVATION_STATE_DISABLE_SLEEPING,
                      physicsClientId=client)
     return body
+
+
+VEHICLE_RGBA = (1.0, 0.55, 0.0, 1.0)
+"""The body: bright orange, visible from afar."""
+ROTOR_RGBA = (0.15, 0.15, 0.15, 1.0)
+NOSE_RGBA = (0.95, 0.95, 0.95, 1.0)
+
+
+def _vehicle_visual(client: int, params: IrisParams, half: list[float]) -> int:
+    """What a camera sees of a vehicle (collision is the box alone): a flat orange body, a dark
+    disc over each rotor, and a white nose on the front (+x, FLU), so heading and attitude show."""
+    body_half = [half[0] * 0.45, half[1] * 0.45, half[2]]
+    shapes = [p.GEOM_BOX]
+    extents: list[dict] = [{"halfExtents": body_half}]
+    offsets = [(0.0, 0.0, 0.0)]
+    colours = [VEHICLE_RGBA]
+    for x, y, _z in params.rotor_positions_flu_m:
+        shapes.append(p.GEOM_CYLINDER)
+        extents.append({"radius": 0.11, "length": 0.02})
+        offsets.append((x, y, half[2]))
+        colours.append(ROTOR_RGBA)
+    shapes.append(p.GEOM_BOX)
+    extents.append({"halfExtents": [0.06, 0.04, half[2] * 0.8]})
+    offsets.append((body_half[0] + 0.05, 0.0, 0.0))  # overlaps the body: one piece
+    colours.append(NOSE_RGBA)
+    return p.createVisualShapeArray(
+        shapeTypes=shapes, halfExtents=[e.get("halfExtents", [0.0, 0.0, 0.0]) for e in extents],
+        radii=[e.get("radius", 0.0) for e in extents], lengths=[e.get("length", 0.0) for e in extents],
+        visualFramePositions=[list(o) for o in offsets], rgbaColors=[list(c) for c in colours],
+        physicsClientId=client)
+
