@@ -124,6 +124,7 @@ def test_slim_removes_only_after_the_export_is_verified(run: Path, capsys: pytes
     capsys.readouterr()
     assert cli(["rules", str(run), "--episodes", "2"]) == 0
     assert cli(["distill", str(run), "--episodes", "2", "--iterations", "1", "--json"]) == 0
+    assert cli(["transfer", str(run / "policy.safetensors"), "--autopilots", "direct", "--episodes", "2"]) == 0
     assert cli(["replay", str(run), "--greedy", "--episode", "0", "--out", str(run / "g.png")]) == 0
     assert (run / "g.png").stat().st_size > 1000
 

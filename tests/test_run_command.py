@@ -201,6 +201,18 @@ def test_trained_policy_flies_through_mavsdk(tmp_path: Path) -> None:
     assert "episode 0 drone 0:" in result.stdout and "episode 1 drone 0:" in result.stdout
     assert "(2 episodes)" in result.stdout
     assert ports_released(base)
+    # the same network as a policy-only export, the run slimmed: flies the same episode
+    slim = subprocess.run([sys.executable, "-m", "sitl_bridge", "export", str(run_dir), "--slim"],
+                          capture_output=True, text=True, timeout=120)
+    assert slim.returncode == 0, slim.stderr
+    again = subprocess.run(
+        _command(world, "--policy", str(run_dir / "policy.safetensors"), "--episodes", "1", "--speed-factor", "0",
+                 "--instance-base", str(base)),
+        cwd=tmp_path, capture_output=True, text=True, timeout=240)
+    assert again.returncode == 0, again.stdout + again.stderr
+    first = next(line for line in result.stdout.splitlines() if line.startswith("episode 0 drone 0:"))
+    assert first in again.stdout
+    assert ports_released(base)
 
 
 def test_policy_for_another_scenario_is_a_clear_error(tmp_path: Path) -> None:
