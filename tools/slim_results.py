@@ -49,28 +49,34 @@ def _size(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else 0
 
 
-def measure(run: Path, episodes_only: bool) -> tuple[int, int]:
+Sizes = dict[str, list[int]]
+"""Bytes before and after, per kind of slimmed part (`episode logs`, `networks`)."""
+
+
+def _count(sizes: Sizes, kind: str, before: int, after: int) -> None:
+    total = sizes.setdefault(kind, [0, 0])
+    total[0] += before
+    total[1] += after
+
+
+def measure(run: Path, episodes_only: bool, sizes: Sizes) -> None:
     """Bytes the run's slimmed parts weigh now and would weigh after (nothing written)."""
-    before = after = 0
     log = run / EPISODES_FILE
     if log.is_file():
         data = log.read_bytes()
-        before += len(data)
-        after += len(lzma.compress(data, preset=9 | lzma.PRESET_EXTREME))
+        _count(sizes, "episode logs", len(data), len(lzma.compress(data, preset=9 | lzma.PRESET_EXTREME)))
     best = run / BEST_CHECKPOINT
     if not episodes_only and best.is_file():
-        before += best.stat().st_size + _size(run / CHECKPOINT_DIR) + _size(run / REPLAY)
-        after += best.stat().st_size if is_policy_file(best) else len(policy_export_bytes(best)[-1])
-    return before, after
+        before = best.stat().st_size + _size(run / CHECKPOINT_DIR) + _size(run / REPLAY)
+        _count(sizes, "networks", before,
+               best.stat().st_size if is_policy_file(best) else len(policy_export_bytes(best)[-1]))
 
 
-def slim(run: Path, episodes_only: bool, rekeyed: dict[str, str]) -> tuple[int, int]:
+def slim(run: Path, episodes_only: bool, rekeyed: dict[str, str], sizes: Sizes) -> None:
     """Slim one run (see the module docstring); records old file digest -> network digest."""
-    before = after = 0
     log = run / EPISODES_FILE
     if log.is_file():
-        shrunk = compress_log(log)
-        before, after = before + shrunk[0], after + shrunk[1]
+        _count(sizes, "episode logs", *compress_log(log))
     best = run / BEST_CHECKPOINT
     if best.is_file() and not is_policy_file(best):
         file_digest = hashlib.sha256(best.read_bytes()).hexdigest()
@@ -79,13 +85,12 @@ def slim(run: Path, episodes_only: bool, rekeyed: dict[str, str]) -> tuple[int, 
         if not episodes_only:
             size = best.stat().st_size
             export = export_policy(best, best)  # written aside, verified, then in place
-            before, after = before + size, after + export.bytes
+            _count(sizes, "networks", size, export.bytes)
     if not episodes_only and best.is_file():
         for name in (CHECKPOINT_DIR, REPLAY):
             if (run / name).is_dir():
-                before += _size(run / name)
+                _count(sizes, "networks", _size(run / name), 0)
                 shutil.rmtree(run / name)
-    return before, after
 
 
 def rekey_caches(tree: Path, rekeyed: dict[str, str]) -> int:
@@ -110,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes-only", action="store_true", help="compress the episode logs only")
     parser.add_argument("--measure", action="store_true", help="print the bytes before/after; change nothing")
     args = parser.parse_args(argv)
-    total_before = total_after = 0
+    sizes: Sizes = {}
     for tree in args.dirs:
         if not tree.is_dir():
             print(f"error: {tree}: not a folder", file=sys.stderr)
@@ -119,17 +124,20 @@ def main(argv: list[str] | None = None) -> int:
         runs = list(run_dirs(tree))
         for run in runs:
             try:
-                before, after = (measure(run, args.episodes_only) if args.measure
-                                 else slim(run, args.episodes_only, rekeyed))
+                if args.measure:
+                    measure(run, args.episodes_only, sizes)
+                else:
+                    slim(run, args.episodes_only, rekeyed, sizes)
             except (CheckpointError, PolicyFileError, OSError) as exc:
-                print(f"error: {run}: {exc} (this run left as it was)", file=sys.stderr)
+                print(f"error: {run}: {exc} (its network and checkpoints left as they were)", file=sys.stderr)
                 return 1
-            total_before, total_after = total_before + before, total_after + after
         caches = 0 if args.measure else rekey_caches(tree, rekeyed)
         print(f"{tree}: {len(runs)} runs" + ("" if args.measure else f", {caches} cache files re-keyed"))
     verb = "would go" if args.measure else "went"
-    print(f"slimmed parts {verb} from {total_before} to {total_after} bytes "
-          f"({total_before - total_after} bytes less)")
+    for kind, (before, after) in sizes.items():
+        print(f"{kind} {verb} from {before} to {after} bytes")
+    before, after = sum(b for b, _ in sizes.values()), sum(a for _, a in sizes.values())
+    print(f"slimmed parts {verb} from {before} to {after} bytes ({before - after} bytes less)")
     return 0
 
 
