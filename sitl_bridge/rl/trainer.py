@@ -232,7 +232,8 @@ class Trainer:
     def _load_init(self, path: Path, tensors: dict[str, torch.Tensor], state: dict[str, Any]) -> None:
         if self.config.transfer_replay and state.get("policy_only"):
             raise ckpt.CheckpointError(f"--transfer-replay: {path} is a policy file (the network alone, no replay); "
-                                       "give the run directory it was exported from, or leave --transfer-replay off")
+                                       "give an unslimmed run directory or training checkpoint, or leave "
+                                       "--transfer-replay off")
         source = state["network"]
         mine = self.agent.shape.to_dict()
         if (source["obs_dim"], source["n_actions"]) != (mine["obs_dim"], mine["n_actions"]):
