@@ -6,6 +6,7 @@ xz (stdlib `lzma`); every reader opens it through `open_log`, so either form rea
 
 from __future__ import annotations
 
+import errno
 import lzma
 import os
 from pathlib import Path
@@ -34,7 +35,7 @@ def open_log(path: str | Path) -> BinaryIO:
         return open(path, "rb")
     if compressed_path(path).is_file():
         return lzma.open(compressed_path(path), "rb")  # type: ignore[return-value]
-    raise FileNotFoundError(f"{path}: no such file (nor {compressed_path(path).name})")
+    raise FileNotFoundError(errno.ENOENT, f"No such file or directory (nor {compressed_path(path).name})", str(path))
 
 
 def compress_log(path: str | Path) -> tuple[int, int]:
