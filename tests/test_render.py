@@ -88,7 +88,7 @@ def test_parallel_env_renders_the_whole_scenario() -> None:
 
 
 def test_record_video_writes_playable_files(tmp_path: Path) -> None:
-    pytest.importorskip("moviepy", reason="the `video` extra is not installed")
+    pytest.importorskip("moviepy", reason="moviepy (in the `test` extra) is not installed")
     import imageio.v3 as iio
 
     env = gym.make("sitl_bridge/Empty-v0", render_mode="rgb_array", estimator="ground_truth")
