@@ -86,7 +86,9 @@ class RunSpec:
 
 def source_commit() -> str | None:
     """Git commit of the package's source tree, or None (installed copy, no git)."""
-    root = Path(__file__).resolve().parents[2]
+    import sitl_bridge  # the package's own folder, wherever this module sits inside it
+
+    root = Path(sitl_bridge.__file__).resolve().parents[1]
     if not (root / ".git").exists():
         return None
     try:
