@@ -8,7 +8,7 @@ behind the other pair's work): on this project's 2-core machine, two `px4` bench
 the mask) pinned to its own core; one pinned worker alone flew 18.8 against 16.2 unpinned
 (`sitl-bridge bench`'s `px4_parallel`, 2026-11-28, one run after the other).
 
-So process pools of PX4-backed runs (`rl.sweep`, `rl.experiment_results`, the bench) pin each
+So process pools of PX4-backed runs (`rl.experiments.sweep`, `rl.experiments.results`, the bench) pin each
 worker to its own core when there are no more workers than cores (`pins_workers`). Pinning
 is Linux's `sched_setaffinity`; elsewhere nothing is pinned.
 """

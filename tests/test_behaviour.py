@@ -11,15 +11,15 @@ import pytest
 from sitl_bridge.envs.features import travel_frame
 from sitl_bridge.envs.scenario import load_scenario
 from sitl_bridge.errors import load_yaml
-from sitl_bridge.rl.actions_named import ACTION_NAMES_BY_FRAME, action_code, action_name
-from sitl_bridge.rl.behaviour import (
+from sitl_bridge.rl.analysis.behaviour import (
     BehaviourAnalysis,
     RunBehaviour,
     classify,
     classify_episode,
     openings,
 )
-from sitl_bridge.rl.candidate_rules import (
+from sitl_bridge.rl.analysis.behaviour_summary import summarize_behaviour
+from sitl_bridge.rl.analysis.candidate_rules import (
     _lidar_condition,
     candidate_rules,
     fidelity,
@@ -28,9 +28,9 @@ from sitl_bridge.rl.candidate_rules import (
     thesis_checks,
     write_rules_yaml,
 )
-from sitl_bridge.rl.rollout import Trace
-from sitl_bridge.rl.rule_policy import evaluate_rules
-from sitl_bridge.rl.rules import summarize_behaviour
+from sitl_bridge.rl.analysis.rule_policy import evaluate_rules
+from sitl_bridge.rl.common.action_names import ACTION_NAMES_BY_FRAME, action_code, action_name
+from sitl_bridge.rl.evaluation.rollout import Trace
 
 WORLDS = Path(__file__).resolve().parent.parent / "worlds"
 Z = 2.5
@@ -331,9 +331,9 @@ def test_climb_over_rule_from_lidar_and_thesis_rule_2() -> None:
 
 
 def test_recording_env_keeps_what_the_policy_saw() -> None:
-    from sitl_bridge.rl.behaviour_runs import RecordingEnv
-    from sitl_bridge.rl.drones_env import scenario_env_factory
-    from sitl_bridge.rl.evaluate import evaluate_on
+    from sitl_bridge.rl.analysis.behaviour_runs import RecordingEnv
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.evaluation.evaluate import evaluate_on
 
     seen: list[np.ndarray] = []
 

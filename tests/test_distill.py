@@ -16,8 +16,7 @@ import yaml
 from sitl_bridge.envs.features import index_words, observation_layout
 from sitl_bridge.envs.scenario import load_scenario
 from sitl_bridge.errors import load_yaml
-from sitl_bridge.rl.actions_named import action_code
-from sitl_bridge.rl.distill import (
+from sitl_bridge.rl.analysis.distill import (
     Candidate,
     Dataset,
     aggregate,
@@ -29,8 +28,7 @@ from sitl_bridge.rl.distill import (
     sample_weights,
     viper_weights,
 )
-from sitl_bridge.rl.drones_env import DronesEnv, scenario_env_factory
-from sitl_bridge.rl.tree_policy import (
+from sitl_bridge.rl.analysis.tree_policy import (
     Leaf,
     Split,
     TreePolicy,
@@ -39,6 +37,8 @@ from sitl_bridge.rl.tree_policy import (
     tree_rules,
     tree_text,
 )
+from sitl_bridge.rl.common.action_names import action_code
+from sitl_bridge.rl.common.drones_env import DronesEnv, scenario_env_factory
 
 pytest.importorskip("sklearn")
 

@@ -1,4 +1,4 @@
-"""The warning for runs that learn to end episodes early (rl/early_end.py): synthetic episode
+"""The warning for runs that learn to end episodes early (rl/training/early_end.py): synthetic episode
 streams, and the committed `two_blocks` runs, where it must name the failed seeds only."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import pytest
 import yaml
 
 from sitl_bridge.envs.scenario import load_scenario
-from sitl_bridge.rl.early_end import EarlyEndWatch, flying_on_value
-from sitl_bridge.rl.episode_log import EpisodeRecord, read_records
-from sitl_bridge.rl.run_dir import run_scenario
+from sitl_bridge.rl.common.episode_log import EpisodeRecord, read_records
+from sitl_bridge.rl.training.early_end import EarlyEndWatch, flying_on_value
+from sitl_bridge.rl.training.run_dir import run_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO_BLOCKS_RUNS = ROOT / "docs/results/generalization/runs/scenarios/two_blocks"
@@ -88,9 +88,9 @@ def test_the_trainer_feeds_its_episodes_to_the_watch_and_warns(tmp_path: Path) -
     persists reach the watch; the warning goes to the trainer's `warn`."""
     from test_rl_helpers import tiny_config
 
-    from sitl_bridge.rl.drones_env import scenario_env_factory
-    from sitl_bridge.rl.run_dir import RunSpec
-    from sitl_bridge.rl.trainer import Trainer
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.training.run_dir import RunSpec
+    from sitl_bridge.rl.training.trainer import Trainer
 
     world = str(ROOT / "worlds/empty.yaml")
     warnings: list[str] = []

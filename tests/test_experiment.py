@@ -15,9 +15,9 @@ import yaml
 from sitl_bridge.cli import main as cli
 from sitl_bridge.data_paths import worlds_dir
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.experiment import load_experiment, selected
-from sitl_bridge.rl.experiment_results import compare, learning_time, summarize_seeds
-from sitl_bridge.rl.stats import mann_whitney, mean_ci95, wilson_interval
+from sitl_bridge.rl.common.stats import mann_whitney, mean_ci95, wilson_interval
+from sitl_bridge.rl.experiments.results import compare, learning_time, summarize_seeds
+from sitl_bridge.rl.experiments.runner import load_experiment, selected
 
 pytest.importorskip("scipy")
 REPO = Path(__file__).resolve().parents[1]
@@ -115,12 +115,12 @@ def test_held_counts_the_seeds_still_at_90_in_their_last_evaluation() -> None:
 
 
 def test_trainer_keeps_the_checkpoint_of_its_best_evaluation(tmp_path) -> None:
-    from sitl_bridge.rl.checkpoint import best_checkpoint
-    from sitl_bridge.rl.config import load_train_config
-    from sitl_bridge.rl.drones_env import scenario_env_factory
-    from sitl_bridge.rl.evaluate import EvalResult
-    from sitl_bridge.rl.run_dir import RunSpec
-    from sitl_bridge.rl.trainer import Trainer
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.evaluation.evaluate import EvalResult
+    from sitl_bridge.rl.learner.checkpoint import best_checkpoint
+    from sitl_bridge.rl.learner.config import load_train_config
+    from sitl_bridge.rl.training.run_dir import RunSpec
+    from sitl_bridge.rl.training.trainer import Trainer
 
     config = load_train_config(EMPTY, {"episodes": 3, "eval_every": 0, "eval_episodes": 0, "batch_size": 8,
                                        "layers": 2, "hidden_units": 8})
@@ -322,8 +322,8 @@ def test_report_of_a_slimmed_tree_is_the_same_without_flying_again(finished, tmp
     import subprocess
     import sys
 
-    from sitl_bridge.rl.checkpoint import load_checkpoint
-    from sitl_bridge.rl.policy_file import network_digest, online_tensors
+    from sitl_bridge.rl.learner.checkpoint import load_checkpoint
+    from sitl_bridge.rl.learner.policy_file import network_digest, online_tensors
 
     file, first = finished
     out = tmp_path / "out"

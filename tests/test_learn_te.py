@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from sitl_bridge.rl.config import load_train_config
-from sitl_bridge.rl.drones_env import DronesEnv, scenario_env_factory
-from sitl_bridge.rl.evaluate import constant_action_baseline
-from sitl_bridge.rl.run_dir import RunSpec
-from sitl_bridge.rl.trainer import Trainer
+from sitl_bridge.rl.common.drones_env import DronesEnv, scenario_env_factory
+from sitl_bridge.rl.evaluation.evaluate import constant_action_baseline
+from sitl_bridge.rl.learner.config import load_train_config
+from sitl_bridge.rl.training.run_dir import RunSpec
+from sitl_bridge.rl.training.trainer import Trainer
 
 TE = Path(__file__).resolve().parents[1] / "worlds" / "two_drones_empty_relative.yaml"
 BUDGET = 300

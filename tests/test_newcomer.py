@@ -16,8 +16,8 @@ import pytest
 
 from sitl_bridge.cli import main as cli
 from sitl_bridge.data_paths import worlds_dir
-from sitl_bridge.rl.config import TrainConfig
-from sitl_bridge.rl.train_plan import plan_lines
+from sitl_bridge.rl.learner.config import TrainConfig
+from sitl_bridge.rl.training.train_plan import plan_lines
 
 REPO = Path(__file__).resolve().parent.parent
 TINY = ["--batch-size", "16", "--layers", "2", "--hidden-units", "16", "--no-progress"]

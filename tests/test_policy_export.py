@@ -14,9 +14,10 @@ import pytest
 import torch
 
 from sitl_bridge.cli import main as cli
-from sitl_bridge.rl.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
-from sitl_bridge.rl.episode_log import read_records
-from sitl_bridge.rl.policy_file import (
+from sitl_bridge.rl.analysis.reflight import logged_episode
+from sitl_bridge.rl.common.episode_log import read_records
+from sitl_bridge.rl.learner.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
+from sitl_bridge.rl.learner.policy_file import (
     PROBE_TENSOR,
     PolicyFileError,
     build_network,
@@ -24,7 +25,6 @@ from sitl_bridge.rl.policy_file import (
     probe_observations,
     read_policy,
 )
-from sitl_bridge.rl.reflight import logged_episode
 
 REPO = Path(__file__).resolve().parent.parent
 EMPTY = str(REPO / "worlds" / "empty.yaml")
@@ -97,7 +97,7 @@ def test_a_policy_that_computes_other_q_values_is_refused(run: Path) -> None:
     """A file whose checksum is right but whose stored probe answers are not the network's."""
     import safetensors.torch
 
-    from sitl_bridge.rl.policy_file import policy_bytes
+    from sitl_bridge.rl.learner.policy_file import policy_bytes
 
     ckpt_tensors, ckpt_state = load_checkpoint(run / "best.safetensors")
     network = online_tensors(ckpt_tensors)

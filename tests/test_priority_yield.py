@@ -13,10 +13,10 @@ import pytest
 import yaml
 
 from sitl_bridge.envs import make_parallel_env, worlds_dir
-from sitl_bridge.rl.behaviour import classify_episode
-from sitl_bridge.rl.drones_env import DronesEnv
-from sitl_bridge.rl.rollout import rollout
-from sitl_bridge.rl.rule_policy import rule_policy
+from sitl_bridge.rl.analysis.behaviour import classify_episode
+from sitl_bridge.rl.analysis.rule_policy import rule_policy
+from sitl_bridge.rl.common.drones_env import DronesEnv
+from sitl_bridge.rl.evaluation.rollout import rollout
 
 WORLD = worlds_dir() / "two_drones_empty_relative.yaml"
 YIELD_RULES = {
@@ -82,9 +82,9 @@ def test_a_trained_tw_policy_goes_through_the_window_by_priority_not_by_id(tmp_p
     goes through the window first is the one with right of way, so it changes with the spawn
     point (session 10: 17 of 17 and 20 of 20 successful episodes in priority order)."""
     from sitl_bridge.envs.scenario import load_scenario
-    from sitl_bridge.rl.behaviour import classify, openings
-    from sitl_bridge.rl.policy import policy_from_checkpoint
-    from sitl_bridge.rl.rollout import eval_seeds
+    from sitl_bridge.rl.analysis.behaviour import classify, openings
+    from sitl_bridge.rl.evaluation.rollout import eval_seeds
+    from sitl_bridge.rl.learner.policy import policy_from_checkpoint
 
     (checkpoint,) = TW_RUN.glob("*/best.safetensors")
     firsts = []

@@ -11,8 +11,8 @@ import pytest
 import torch
 from test_rl_cli import EMPTY, TINY, cli, only_run
 
-from sitl_bridge.rl.checkpoint import list_checkpoints, load_checkpoint
-from sitl_bridge.rl.episode_log import read_records
+from sitl_bridge.rl.common.episode_log import read_records
+from sitl_bridge.rl.learner.checkpoint import list_checkpoints, load_checkpoint
 
 
 @pytest.mark.px4

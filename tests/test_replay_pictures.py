@@ -1,4 +1,4 @@
-"""Pictures of behaviour (`sitl-bridge replay`, `rl/pictures.py`, `rl/reflight.py`) on a tiny real
+"""Pictures of behaviour (`sitl-bridge replay`, `rl/analysis/pictures.py`, `rl/analysis/reflight.py`) on a tiny real
 run (direct backend): logged episodes fly again exactly, the trajectory is drawn where it flew in
 both views, GIFs animate, greedy episodes are evaluation episodes, bad input is one line."""
 
@@ -16,18 +16,18 @@ import pytest
 from PIL import Image
 
 from sitl_bridge.envs.scenario import load_scenario
-from sitl_bridge.rl import pictures
-from sitl_bridge.rl.drones_env import DronesEnv, scenario_env_factory
-from sitl_bridge.rl.episode_log import read_records
-from sitl_bridge.rl.pictures import (
+from sitl_bridge.rl.analysis import pictures
+from sitl_bridge.rl.analysis.pictures import (
     EpisodePicture,
     action_legend,
     draw_episode,
     draw_grid,
     run_lengths,
 )
-from sitl_bridge.rl.reflight import fly, greedy_pictures, refly_logged, typical
-from sitl_bridge.rl.rollout import eval_seeds
+from sitl_bridge.rl.analysis.reflight import fly, greedy_pictures, refly_logged, typical
+from sitl_bridge.rl.common.drones_env import DronesEnv, scenario_env_factory
+from sitl_bridge.rl.common.episode_log import read_records
+from sitl_bridge.rl.evaluation.rollout import eval_seeds
 
 REPO = Path(__file__).resolve().parent.parent
 OBSTACLE = str(REPO / "worlds" / "obstacle.yaml")
@@ -174,7 +174,7 @@ def test_bad_input_is_one_line(run: Path, tmp_path: Path, capsys: pytest.Capture
 
 
 def test_greedy_episodes_are_evaluation_episodes_and_make_a_grid(run: Path, tmp_path: Path) -> None:
-    from sitl_bridge.rl.policy import policy_from_checkpoint
+    from sitl_bridge.rl.learner.policy import policy_from_checkpoint
 
     greedy = greedy_pictures(run, [0, 2], seed=4)
     seeds = eval_seeds(4, 3)

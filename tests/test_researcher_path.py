@@ -13,8 +13,8 @@ import pytest
 import yaml
 from test_rl_helpers import corridor_factory, tiny_config
 
-from sitl_bridge.rl.run_dir import RunSpec
-from sitl_bridge.rl.trainer import Trainer
+from sitl_bridge.rl.training.run_dir import RunSpec
+from sitl_bridge.rl.training.trainer import Trainer
 
 REPO = Path(__file__).resolve().parent.parent
 WORLDS = REPO / "worlds"

@@ -16,7 +16,7 @@ import pytest
 from sitl_bridge.cli import main as cli
 from sitl_bridge.data_paths import worlds_dir
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.experiment import load_experiment
+from sitl_bridge.rl.experiments.runner import load_experiment
 
 pytest.importorskip("scipy")
 pytest.importorskip("sklearn")
@@ -98,7 +98,7 @@ def test_rules_section_is_verified_in_the_simpler_scenarios(experiment) -> None:
 
 
 def test_rules_yamls_exist_and_fly(experiment) -> None:
-    from sitl_bridge.rl.rule_policy import load_rules, verify_rules
+    from sitl_bridge.rl.analysis.rule_policy import load_rules, verify_rules
 
     out, _ = experiment
     for stem in ("empty", "random_goal"):
@@ -143,7 +143,10 @@ def test_grids_of_typical_episodes_are_drawn(experiment) -> None:
 def test_a_second_report_reuses_the_flights_and_says_not_run(experiment, tmp_path) -> None:
     """A scenario without finished runs is "not run" in every section; the others come from the
     cache (their rules and tree files are not written again)."""
-    from sitl_bridge.rl import backend_results, distill_results, experiment_report, rule_results
+    from sitl_bridge.rl.experiments import backends_section as backend_results
+    from sitl_bridge.rl.experiments import report as experiment_report
+    from sitl_bridge.rl.experiments import rules_section as rule_results
+    from sitl_bridge.rl.experiments import trees_section as distill_results
 
     out, results = experiment
     files = [out / "rules" / "empty.yaml", out / "trees" / "empty.txt", out / "figures" / "empty_episodes.png"]
@@ -204,7 +207,7 @@ def test_backend_flights_are_cached_per_seed(experiment) -> None:
     """A second report with every seed flies only the seed not flown before, on each backend."""
     import dataclasses
 
-    from sitl_bridge.rl import backend_results
+    from sitl_bridge.rl.experiments import backends_section as backend_results
 
     out, results = experiment
     said: list[str] = []
@@ -219,7 +222,7 @@ def test_backend_flights_are_cached_per_seed(experiment) -> None:
 
 
 def test_simpler_scenarios_follow_the_thesis_and_the_comparisons() -> None:
-    from sitl_bridge.rl.rule_results import simpler_scenarios
+    from sitl_bridge.rl.experiments.rules_section import simpler_scenarios
 
     def scenario() -> dict:
         return {"world": "x", "seeds": []}

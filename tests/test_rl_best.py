@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 from test_rl_helpers import corridor_factory, tiny_config
 
-from sitl_bridge.rl.checkpoint import BEST_CHECKPOINT, load_checkpoint, resolve_checkpoint
-from sitl_bridge.rl.run_dir import BEST_FILE, EVALS_FILE, RunSpec
-from sitl_bridge.rl.trainer import Trainer, selection_score
+from sitl_bridge.rl.learner.checkpoint import BEST_CHECKPOINT, load_checkpoint, resolve_checkpoint
+from sitl_bridge.rl.training.run_dir import BEST_FILE, EVALS_FILE, RunSpec
+from sitl_bridge.rl.training.trainer import Trainer, selection_score
 
 
 def test_best_checkpoint_is_the_best_evaluation_and_the_runs_result(tmp_path: Path) -> None:
@@ -68,8 +68,8 @@ def test_a_stop_is_confirmed_on_more_evaluation_episodes(tmp_path: Path) -> None
 
 
 def test_an_evaluation_extended_from_a_shorter_one_equals_one_flown_whole() -> None:
-    from sitl_bridge.rl.drones_env import DronesEnv
-    from sitl_bridge.rl.evaluate import evaluate_on
+    from sitl_bridge.rl.common.drones_env import DronesEnv
+    from sitl_bridge.rl.evaluation.evaluate import evaluate_on
 
     env = DronesEnv(corridor_factory()(0))
     try:

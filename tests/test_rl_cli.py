@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sitl_bridge.rl.episode_log import read_records
-from sitl_bridge.rl.policy import policy_from_checkpoint
+from sitl_bridge.rl.common.episode_log import read_records
+from sitl_bridge.rl.learner.policy import policy_from_checkpoint
 
 REPO = Path(__file__).resolve().parent.parent
 EMPTY = str(REPO / "worlds" / "empty.yaml")          # 51 inputs

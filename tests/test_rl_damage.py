@@ -17,16 +17,16 @@ import yaml
 from test_rl_helpers import corridor_factory, train_corridor
 
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.checkpoint import (
+from sitl_bridge.rl.common.episode_log import read_records
+from sitl_bridge.rl.learner.checkpoint import (
     CheckpointError,
     list_checkpoints,
     load_checkpoint,
     resolve_checkpoint,
     save_checkpoint,
 )
-from sitl_bridge.rl.episode_log import read_records
-from sitl_bridge.rl.policy import policy_from_checkpoint
-from sitl_bridge.rl.trainer import Trainer, read_run_records
+from sitl_bridge.rl.learner.policy import policy_from_checkpoint
+from sitl_bridge.rl.training.trainer import Trainer, read_run_records
 
 EPISODES = 8
 ROOT = Path(__file__).parent.parent

@@ -11,8 +11,8 @@ import torch
 from torch import nn
 
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.config import TrainConfig, field_docs
-from sitl_bridge.rl.dqn import (
+from sitl_bridge.rl.learner.config import TrainConfig, field_docs
+from sitl_bridge.rl.learner.dqn import (
     Batch,
     DQNAgent,
     NetworkShape,
@@ -22,7 +22,7 @@ from sitl_bridge.rl.dqn import (
     learning_rate_at,
     td_targets,
 )
-from sitl_bridge.rl.replay import ReplayBuffer
+from sitl_bridge.rl.learner.replay_buffer import ReplayBuffer
 
 
 def table_q(rows: list[list[float]]) -> nn.Module:
@@ -142,7 +142,7 @@ def test_config_rejects_bad_values_and_documents_fields() -> None:
 
 
 def test_config_errors_name_file_key_and_flag(tmp_path) -> None:  # noqa: ANN001
-    from sitl_bridge.rl.config import apply_overrides, load_train_config
+    from sitl_bridge.rl.learner.config import apply_overrides, load_train_config
 
     path = tmp_path / "w.yaml"
     path.write_text("world: {}\ntrain:\n  gamma: 2\n")

@@ -1,4 +1,4 @@
-"""ez-greedy (rl/exploration.py): the run-length distribution, runs that repeat one action without
+"""ez-greedy (rl/learner/exploration.py): the run-length distribution, runs that repeat one action without
 greedy decisions, plain epsilon-greedy's random stream when no run is going on, and the option's
 wiring into the trainer and its config."""
 
@@ -11,9 +11,9 @@ import pytest
 from test_rl_helpers import corridor_factory, tiny_config
 
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.exploration import RepeatedExploration, repeat_probabilities
-from sitl_bridge.rl.run_dir import RunSpec
-from sitl_bridge.rl.trainer import Trainer
+from sitl_bridge.rl.learner.exploration import RepeatedExploration, repeat_probabilities
+from sitl_bridge.rl.training.run_dir import RunSpec
+from sitl_bridge.rl.training.trainer import Trainer
 
 GREEDY = 9
 """What the stand-in network always chooses (outside the random actions 0..7)."""

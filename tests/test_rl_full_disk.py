@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from sitl_bridge.rl.checkpoint import load_checkpoint, save_checkpoint
+from sitl_bridge.rl.learner.checkpoint import load_checkpoint, save_checkpoint
 
 
 @pytest.fixture

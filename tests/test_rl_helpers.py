@@ -79,7 +79,7 @@ def corridor_factory(step_delay_s: float = 0.0):
 
 def tiny_config(**changes: Any):
     """A small, fast TrainConfig for the corridor."""
-    from sitl_bridge.rl.config import TrainConfig
+    from sitl_bridge.rl.learner.config import TrainConfig
 
     base = dict(episodes=6, gamma=0.9, epsilon_decay=1e-2, learning_rate=3e-3, batch_size=8,
                 target_update_period=10, replay_capacity=40, layers=2, hidden_units=16,
@@ -92,8 +92,8 @@ def train_corridor(out: str, run_dir: str | None, episodes: int, step_delay_s: f
                    **changes: Any) -> str:
     """Start (run_dir None) or resume a corridor run (`changes`: TrainConfig values of a new
     run); returns the run directory. It writes the heartbeat, as `sitl-bridge train` does."""
-    from sitl_bridge.rl.run_dir import RunSpec
-    from sitl_bridge.rl.trainer import Trainer
+    from sitl_bridge.rl.training.run_dir import RunSpec
+    from sitl_bridge.rl.training.trainer import Trainer
 
     factory = corridor_factory(step_delay_s)
     if run_dir is None:
@@ -109,7 +109,7 @@ def train_corridor(out: str, run_dir: str | None, episodes: int, step_delay_s: f
 
 def kill_when_replacing(name: str, when: str) -> None:
     """SIGKILL this process just before (`when` "before") or just after ("after") a file named
-    `name` is renamed into place: a kill at an exact point of an atomic write (rl/atomic.py)."""
+    `name` is renamed into place: a kill at an exact point of an atomic write (rl/common/atomic.py)."""
     import os
     import signal
 

@@ -10,14 +10,25 @@ import pytest
 import torch
 from test_rl_helpers import corridor_factory, tiny_config
 
-from sitl_bridge.rl.config import TrainConfig
-from sitl_bridge.rl.dqn import Batch, DQNAgent, NetworkShape, QNetwork, dueling_q, td_targets
-from sitl_bridge.rl.normalizer import RunningNorm
-from sitl_bridge.rl.nstep import NStepFolder, Step
-from sitl_bridge.rl.prioritized import Priorities, importance_weights, sampling_probabilities
-from sitl_bridge.rl.replay import ReplayBuffer
-from sitl_bridge.rl.run_dir import RunSpec
-from sitl_bridge.rl.trainer import Trainer, read_run_records
+from sitl_bridge.rl.learner.config import TrainConfig
+from sitl_bridge.rl.learner.dqn import (
+    Batch,
+    DQNAgent,
+    NetworkShape,
+    QNetwork,
+    dueling_q,
+    td_targets,
+)
+from sitl_bridge.rl.learner.normalizer import RunningNorm
+from sitl_bridge.rl.learner.nstep import NStepFolder, Step
+from sitl_bridge.rl.learner.prioritized import (
+    Priorities,
+    importance_weights,
+    sampling_probabilities,
+)
+from sitl_bridge.rl.learner.replay_buffer import ReplayBuffer
+from sitl_bridge.rl.training.run_dir import RunSpec
+from sitl_bridge.rl.training.trainer import Trainer, read_run_records
 
 
 # --- n-step -------------------------------------------------------------------------------------
@@ -109,7 +120,7 @@ def test_per_sampling_follows_priorities_and_updates() -> None:
 
 
 def test_importance_weights_scale_the_loss() -> None:
-    from sitl_bridge.rl.dqn import dqn_loss_and_errors
+    from sitl_bridge.rl.learner.dqn import dqn_loss_and_errors
 
     net = torch.nn.Linear(1, 2)
     torch.nn.init.zeros_(net.weight)

@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 from test_rl_helpers import train_corridor
 
-from sitl_bridge.rl.checkpoint import BEST_CHECKPOINT, list_checkpoints, load_checkpoint
-from sitl_bridge.rl.heartbeat import read_heartbeat
+from sitl_bridge.rl.learner.checkpoint import BEST_CHECKPOINT, list_checkpoints, load_checkpoint
+from sitl_bridge.rl.training.heartbeat import read_heartbeat
 
 ROOT = Path(__file__).parent.parent
 HELPER = Path(__file__).with_name("test_rl_helpers.py")

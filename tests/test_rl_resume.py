@@ -18,14 +18,14 @@ import pytest
 import torch
 from test_rl_helpers import CorridorEnv, corridor_factory, tiny_config, train_corridor
 
-from sitl_bridge.rl.checkpoint import (
+from sitl_bridge.rl.learner.checkpoint import (
     CheckpointError,
     list_checkpoints,
     load_checkpoint,
     save_checkpoint,
 )
-from sitl_bridge.rl.run_dir import RunSpec
-from sitl_bridge.rl.trainer import ShapeMismatch, Trainer, read_run_records
+from sitl_bridge.rl.training.run_dir import RunSpec
+from sitl_bridge.rl.training.trainer import ShapeMismatch, Trainer, read_run_records
 
 HELPER = Path(__file__).with_name("test_rl_helpers.py")
 EPISODES = 8
@@ -128,7 +128,7 @@ def test_checkpoint_round_trip_and_load_errors(tmp_path: Path) -> None:
     assert torch.equal(loaded["w"], tensors["w"]) and loaded_state == state
     assert not list(tmp_path.glob(".*tmp*"))  # no temp file left behind
     path.write_bytes(path.read_bytes()[:10])
-    from sitl_bridge.rl.checkpoint import CheckpointCorrupt
+    from sitl_bridge.rl.learner.checkpoint import CheckpointCorrupt
 
     with pytest.raises(CheckpointCorrupt, match="truncated"):
         load_checkpoint(path)

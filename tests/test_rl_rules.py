@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sitl_bridge.rl.plots import per_episode, rolling_mean
-from sitl_bridge.rl.rollout import Trace
-from sitl_bridge.rl.rules import path_geometry, run_length, summarize_behaviour
+from sitl_bridge.rl.analysis.behaviour_summary import path_geometry, run_length, summarize_behaviour
+from sitl_bridge.rl.analysis.plots import per_episode, rolling_mean
+from sitl_bridge.rl.evaluation.rollout import Trace
 
 
 def trace(actions: list[int], path: list[tuple[float, float, float]], goal=(0.0, 8.0, 2.5),

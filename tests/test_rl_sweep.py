@@ -52,10 +52,10 @@ def test_two_seed_sweep_then_rerun_skips(tmp_path) -> None:
 
 def test_half_finished_sweep_resumes(tmp_path) -> None:
     """Seed 0 finished; seed 1 was killed after one episode (a run dir, no done.json)."""
-    from sitl_bridge.rl.config import load_train_config
-    from sitl_bridge.rl.drones_env import scenario_env_factory
-    from sitl_bridge.rl.run_dir import RunSpec
-    from sitl_bridge.rl.trainer import Trainer
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.learner.config import load_train_config
+    from sitl_bridge.rl.training.run_dir import RunSpec
+    from sitl_bridge.rl.training.trainer import Trainer
 
     root = tmp_path / "sweep"
     assert _sweep(root, "--seeds", "0", "--workers", "1").returncode == 0

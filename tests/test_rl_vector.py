@@ -20,12 +20,12 @@ from test_rl_cli import (
 )
 from test_rl_helpers import corridor_factory, tiny_config
 
-from sitl_bridge.rl.checkpoint import list_checkpoints, load_checkpoint
-from sitl_bridge.rl.config import TrainConfig
-from sitl_bridge.rl.dqn import DQNAgent, NetworkShape
-from sitl_bridge.rl.episode_log import read_records
-from sitl_bridge.rl.run_dir import RunSpec
-from sitl_bridge.rl.trainer import Trainer, episode_seed, read_run_records
+from sitl_bridge.rl.common.episode_log import read_records
+from sitl_bridge.rl.learner.checkpoint import list_checkpoints, load_checkpoint
+from sitl_bridge.rl.learner.config import TrainConfig
+from sitl_bridge.rl.learner.dqn import DQNAgent, NetworkShape
+from sitl_bridge.rl.training.run_dir import RunSpec
+from sitl_bridge.rl.training.trainer import Trainer, episode_seed, read_run_records
 
 EPISODES = 5  # waves of 2: episodes 0-1, 2-3, then 4 alone
 ARGS = ["--episodes", str(EPISODES), "--num-envs", "2", "--seed", "4", *TINY[:-1], "--eval-episodes", "0",
@@ -84,8 +84,8 @@ def test_num_envs_2_writes_a_run_dir_of_waves_with_each_episodes_own_seed(refere
 
 def test_a_stopped_then_resumed_run_equals_the_uninterrupted_one(world: str, reference: Path,
                                                                  tmp_path: Path) -> None:
-    from sitl_bridge.rl.config import load_train_config
-    from sitl_bridge.rl.drones_env import scenario_env_factory
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.learner.config import load_train_config
 
     config = load_train_config(world, {"episodes": EPISODES, "num_envs": 2, "batch_size": 16, "layers": 2,
                                        "hidden_units": 16, "eval_every": 0, "eval_episodes": 0})

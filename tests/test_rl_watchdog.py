@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from sitl_bridge.rl.heartbeat import read_heartbeat
-from sitl_bridge.rl.watchdog import _resume_argv
+from sitl_bridge.rl.training.heartbeat import read_heartbeat
+from sitl_bridge.rl.training.watchdog import _resume_argv
 
 ROOT = Path(__file__).parent.parent
 EPISODES = 10

@@ -16,9 +16,7 @@ from sitl_bridge.commands import eval as eval_command
 from sitl_bridge.envs.features import observation_layout
 from sitl_bridge.envs.scenario import load_scenario
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.actions_named import action_code, action_name
-from sitl_bridge.rl.evaluate import EvalResult
-from sitl_bridge.rl.rule_policy import (
+from sitl_bridge.rl.analysis.rule_policy import (
     HOVER,
     Condition,
     bind,
@@ -27,7 +25,9 @@ from sitl_bridge.rl.rule_policy import (
     rule_policy,
     verify_rules,
 )
-from sitl_bridge.rl.tree_policy import Leaf, Split, TreePolicy, feature_labels, tree_rules
+from sitl_bridge.rl.analysis.tree_policy import Leaf, Split, TreePolicy, feature_labels, tree_rules
+from sitl_bridge.rl.common.action_names import action_code, action_name
+from sitl_bridge.rl.evaluation.evaluate import EvalResult
 
 REPO = Path(__file__).resolve().parent.parent
 WORLDS = REPO / "worlds"

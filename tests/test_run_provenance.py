@@ -6,7 +6,7 @@ import subprocess
 from pathlib import Path
 
 import sitl_bridge
-from sitl_bridge.rl.run_dir import source_commit
+from sitl_bridge.rl.training.run_dir import source_commit
 
 
 def test_source_commit_names_the_checkouts_head() -> None:

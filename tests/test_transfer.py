@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 from conftest import pick_free_instances
 
-from sitl_bridge.rl.backend_transfer import (
+from sitl_bridge.rl.common.stats import wilson_interval
+from sitl_bridge.rl.experiments.backend_transfer import (
     BackendFlight,
     differs,
     pooled,
@@ -19,7 +20,6 @@ from sitl_bridge.rl.backend_transfer import (
     summary,
     why_differ,
 )
-from sitl_bridge.rl.stats import wilson_interval
 
 WORLD = str(Path(__file__).resolve().parent.parent / "worlds" / "empty.yaml")
 

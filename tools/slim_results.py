@@ -29,11 +29,11 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from sitl_bridge.rl.checkpoint import BEST_CHECKPOINT, CHECKPOINT_DIR, CheckpointError  # noqa: E402
-from sitl_bridge.rl.episode_files import compress_log  # noqa: E402
-from sitl_bridge.rl.policy_export import export_policy, policy_export_bytes  # noqa: E402
-from sitl_bridge.rl.policy_file import PolicyFileError, is_policy_file, network_digest  # noqa: E402
-from sitl_bridge.rl.run_dir import EPISODES_FILE, REPLAY, RUN_FILE  # noqa: E402
+from sitl_bridge.rl.common.episode_files import compress_log  # noqa: E402
+from sitl_bridge.rl.learner.checkpoint import BEST_CHECKPOINT, CHECKPOINT_DIR, CheckpointError  # noqa: E402
+from sitl_bridge.rl.learner.policy_file import PolicyFileError, is_policy_file, network_digest  # noqa: E402
+from sitl_bridge.rl.training.policy_export import export_policy, policy_export_bytes  # noqa: E402
+from sitl_bridge.rl.training.run_dir import EPISODES_FILE, REPLAY, RUN_FILE  # noqa: E402
 
 DEFAULT_TREE = REPO / "docs" / "results"
 

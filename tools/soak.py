@@ -36,7 +36,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from sitl_bridge.rl.heartbeat import read_heartbeat  # noqa: E402
+from sitl_bridge.rl.training.heartbeat import read_heartbeat  # noqa: E402
 
 FAULTS = ("sigkill", "sigstop", "corrupt_last_line", "delete_shard")
 

@@ -257,10 +257,10 @@ def _batched_case(size: Size, bare: float) -> dict[str, Any]:
 
 def _train_case(size: Size, bare: float) -> dict[str, Any]:
     """DQN env steps per wall second with O's `train:` settings (updates every step)."""
-    from sitl_bridge.rl.config import load_train_config
-    from sitl_bridge.rl.drones_env import scenario_env_factory
-    from sitl_bridge.rl.run_dir import RunSpec
-    from sitl_bridge.rl.trainer import Trainer
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.learner.config import load_train_config
+    from sitl_bridge.rl.training.run_dir import RunSpec
+    from sitl_bridge.rl.training.trainer import Trainer
 
     world = str(_scenario())
     step_s = _step_s()

@@ -23,9 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.checkpoint import CheckpointError
-    from sitl_bridge.rl.curriculum import load_curriculum, run_curriculum
-    from sitl_bridge.rl.trainer import ShapeMismatch
+    from sitl_bridge.rl.learner.checkpoint import CheckpointError
+    from sitl_bridge.rl.training.curriculum import load_curriculum, run_curriculum
+    from sitl_bridge.rl.training.trainer import ShapeMismatch
 
     try:
         curriculum = load_curriculum(args.file)

@@ -31,9 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.atomic import atomic_write_text
-    from sitl_bridge.rl.checkpoint import CheckpointError
-    from sitl_bridge.rl.distill import Candidate, distill_run
+    from sitl_bridge.rl.analysis.distill import Candidate, distill_run
+    from sitl_bridge.rl.common.atomic import atomic_write_text
+    from sitl_bridge.rl.learner.checkpoint import CheckpointError
 
     if args.max_depth < 1 or args.iterations < 1 or args.episodes < 1:
         print("error: --max-depth, --iterations and --episodes must be at least 1", file=sys.stderr)

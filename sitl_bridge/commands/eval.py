@@ -2,7 +2,7 @@
 policy, in the run's own scenario unless `--world` names another.
 
 `sitl-bridge eval --rules RULES.yaml [--world WORLD.yaml]`: the same evaluation of a rule set flown
-as a scripted controller (`sitl_bridge/rl/rule_policy.py`), by default in the first scenario it
+as a scripted controller (`sitl_bridge/rl/analysis/rule_policy.py`), by default in the first scenario it
 covers."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from sitl_bridge.commands import add_env_autopilot_argument
 from sitl_bridge.errors import ConfigError
 
 if TYPE_CHECKING:
-    from sitl_bridge.rl.evaluate import EvalResult
+    from sitl_bridge.rl.evaluation.evaluate import EvalResult
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -37,8 +37,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.checkpoint import CheckpointError
-    from sitl_bridge.rl.video import VideoUnavailable
+    from sitl_bridge.rl.evaluation.video import VideoUnavailable
+    from sitl_bridge.rl.learner.checkpoint import CheckpointError
 
     if (args.checkpoint is None) == (args.rules is None):
         print("error: give either a checkpoint / run directory or --rules RULES.yaml (exactly one)", file=sys.stderr)
@@ -53,8 +53,8 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _evaluate_checkpoint(args: argparse.Namespace) -> EvalResult:
-    from sitl_bridge.rl.evaluate import evaluate_checkpoint
-    from sitl_bridge.rl.run_dir import run_scenario
+    from sitl_bridge.rl.evaluation.evaluate import evaluate_checkpoint
+    from sitl_bridge.rl.training.run_dir import run_scenario
 
     world = args.world or run_scenario(args.checkpoint)
     result, _ = evaluate_checkpoint(args.checkpoint, world, episodes=args.episodes, autopilot=args.autopilot,
@@ -63,7 +63,7 @@ def _evaluate_checkpoint(args: argparse.Namespace) -> EvalResult:
 
 
 def _evaluate_rules(args: argparse.Namespace) -> EvalResult:
-    from sitl_bridge.rl.rule_policy import covered_scenarios, evaluate_rules, load_rules
+    from sitl_bridge.rl.analysis.rule_policy import covered_scenarios, evaluate_rules, load_rules
     from sitl_bridge.world.lookup import resolve_world
 
     rules = load_rules(args.rules)

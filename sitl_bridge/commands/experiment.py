@@ -51,10 +51,9 @@ def reproduce_command(args: argparse.Namespace, out: str) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl import experiment as ex
-    from sitl_bridge.rl import experiment_report as report
-    from sitl_bridge.rl import experiment_results as res
-    from sitl_bridge.rl import sweep
+    from sitl_bridge.rl.experiments import report, sweep
+    from sitl_bridge.rl.experiments import results as res
+    from sitl_bridge.rl.experiments import runner as ex
 
     try:
         if args.workers < 1:

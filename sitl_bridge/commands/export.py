@@ -26,9 +26,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.checkpoint import CheckpointError
-    from sitl_bridge.rl.policy_export import export_policy, slim_run
-    from sitl_bridge.rl.policy_file import PolicyFileError
+    from sitl_bridge.rl.learner.checkpoint import CheckpointError
+    from sitl_bridge.rl.learner.policy_file import PolicyFileError
+    from sitl_bridge.rl.training.policy_export import export_policy, slim_run
 
     try:
         if args.slim:

@@ -10,7 +10,11 @@ import sys
 
 from sitl_bridge.commands import add_env_autopilot_argument
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.config import add_config_arguments, load_train_config, overrides_from_args
+from sitl_bridge.rl.learner.config import (
+    add_config_arguments,
+    load_train_config,
+    overrides_from_args,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,8 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.drones_env import scenario_env_factory
-    from sitl_bridge.rl.lr_probe import DEFAULT_RATES, probe
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.training.lr_probe import DEFAULT_RATES, probe
 
     try:
         config = load_train_config(args.world, overrides_from_args(args))

@@ -24,7 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.plots import NotARun, plot_runs
+    from sitl_bridge.rl.analysis.plots import NotARun, plot_runs
 
     out = args.out
     if out is None and len(args.run_dirs) > 1:

@@ -35,9 +35,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from sitl_bridge.rl.checkpoint import CheckpointError
-    from sitl_bridge.rl.pictures import FORMATS, draw_episode
-    from sitl_bridge.rl.reflight import greedy_pictures, refly_logged
+    from sitl_bridge.rl.analysis.pictures import FORMATS, draw_episode
+    from sitl_bridge.rl.analysis.reflight import greedy_pictures, refly_logged
+    from sitl_bridge.rl.learner.checkpoint import CheckpointError
 
     out = Path(args.out)
     try:

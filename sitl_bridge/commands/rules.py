@@ -31,9 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.behaviour_runs import analyse_runs
-    from sitl_bridge.rl.candidate_rules import write_rules_yaml
-    from sitl_bridge.rl.checkpoint import CheckpointError
+    from sitl_bridge.rl.analysis.behaviour_runs import analyse_runs
+    from sitl_bridge.rl.analysis.candidate_rules import write_rules_yaml
+    from sitl_bridge.rl.learner.checkpoint import CheckpointError
 
     try:
         report = analyse_runs(args.checkpoint, args.world, episodes=args.episodes, seed=args.seed,

@@ -245,12 +245,12 @@ def _run_policy(args: argparse.Namespace) -> int:
               f"{' or '.join(registry.names(session=True, env=True))}", file=sys.stderr)
         return 2
     # torch and mavsdk are only imported for this mode
-    from sitl_bridge.rl.drones_env import DronesEnv, scenario_env_factory
-    from sitl_bridge.rl.evaluate import summarize
-    from sitl_bridge.rl.policy import policy_from_checkpoint
-    from sitl_bridge.rl.rollout import eval_seeds, rollout
-    from sitl_bridge.rl.run_dir import run_dir_of, run_scenario
-    from sitl_bridge.rl.video import VideoUnavailable
+    from sitl_bridge.rl.common.drones_env import DronesEnv, scenario_env_factory
+    from sitl_bridge.rl.evaluation.evaluate import summarize
+    from sitl_bridge.rl.evaluation.rollout import eval_seeds, rollout
+    from sitl_bridge.rl.evaluation.video import VideoUnavailable
+    from sitl_bridge.rl.learner.policy import policy_from_checkpoint
+    from sitl_bridge.rl.training.run_dir import run_dir_of, run_scenario
 
     try:
         # The run's own scenario unless a world is named (a bare checkpoint file: the default world).
@@ -261,7 +261,7 @@ def _run_policy(args: argparse.Namespace) -> int:
         videos = None
         if args.video:
             from sitl_bridge.envs.scenario import load_scenario
-            from sitl_bridge.rl.video import EpisodeVideos
+            from sitl_bridge.rl.evaluation.video import EpisodeVideos
 
             videos = EpisodeVideos.into_file(args.video, load_scenario(world).task.render.fps)
         factory = scenario_env_factory(world, args.autopilot, speed_factor=args.speed_factor,

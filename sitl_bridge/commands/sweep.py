@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.config import add_config_arguments, overrides_from_args
+from sitl_bridge.rl.learner.config import add_config_arguments, overrides_from_args
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl import sweep
+    from sitl_bridge.rl.experiments import sweep
 
     try:
         if args.workers < 1:

@@ -14,10 +14,14 @@ from typing import TYPE_CHECKING
 
 from sitl_bridge.commands import add_env_autopilot_argument
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.rl.config import add_config_arguments, load_train_config, overrides_from_args
+from sitl_bridge.rl.learner.config import (
+    add_config_arguments,
+    load_train_config,
+    overrides_from_args,
+)
 
 if TYPE_CHECKING:
-    from sitl_bridge.rl.trainer import Trainer
+    from sitl_bridge.rl.training.trainer import Trainer
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("train", help="train a DQN agent on a scenario (resumable)",
@@ -39,7 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_watchdog_arguments(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("watchdog (rl/watchdog.py)")
+    group = parser.add_argument_group("watchdog (rl/training/watchdog.py)")
     group.add_argument("--watchdog", action="store_true",
                        help="train in a child process; restart it from its last checkpoint when it dies or freezes")
     group.add_argument("--freeze-timeout", type=float, default=120.0, metavar="S",
@@ -49,7 +53,7 @@ def _add_watchdog_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_watchdog(args: argparse.Namespace) -> int:
-    from sitl_bridge.rl.watchdog import Watchdog
+    from sitl_bridge.rl.training.watchdog import Watchdog
 
     if args.freeze_timeout <= 0 or args.max_restarts_per_hour < 0:
         print("error: command line: --freeze-timeout/--max-restarts-per-hour: expected positive numbers",
@@ -70,7 +74,7 @@ def main(args: argparse.Namespace) -> int:
     except OSError as exc:
         if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
-        # Every write is atomic (rl/atomic.py): what was saved before stays; --resume continues.
+        # Every write is atomic (rl/common/atomic.py): what was saved before stays; --resume continues.
         print(f"error: disk full writing {exc.filename or 'the run directory'}: free some space, then "
               "`sitl-bridge train --resume RUN_DIR` continues from the last checkpoint", file=sys.stderr)
         return 1
@@ -78,9 +82,9 @@ def main(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     # torch and the simulator load here, not when the CLI lists its commands.
-    from sitl_bridge.rl.checkpoint import CheckpointError
-    from sitl_bridge.rl.train_plan import plan_lines
-    from sitl_bridge.rl.trainer import ShapeMismatch
+    from sitl_bridge.rl.learner.checkpoint import CheckpointError
+    from sitl_bridge.rl.training.train_plan import plan_lines
+    from sitl_bridge.rl.training.trainer import ShapeMismatch
 
     try:
         trainer = _build(args)
@@ -110,9 +114,9 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _build(args: argparse.Namespace) -> Trainer:
-    from sitl_bridge.rl.drones_env import scenario_env_factory
-    from sitl_bridge.rl.run_dir import RunSpec
-    from sitl_bridge.rl.trainer import Trainer
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.training.run_dir import RunSpec
+    from sitl_bridge.rl.training.trainer import Trainer
 
     overrides = overrides_from_args(args)
     progress = not args.no_progress
@@ -123,7 +127,7 @@ def _build(args: argparse.Namespace) -> Trainer:
         return Trainer.resume(args.resume, episodes=overrides["episodes"], progress=progress, heartbeat=True)
     if not args.world:
         raise ConfigError("command line: WORLD: expected a scenario file (or --resume RUN_DIR), got nothing")
-    from sitl_bridge.rl.scenario_file import check_scenario_file
+    from sitl_bridge.rl.training.scenario_file import check_scenario_file
     from sitl_bridge.world.lookup import world_file
 
     args.world = str(world_file(args.world))  # a shipped world by bare name; run.json records the file

@@ -2,12 +2,12 @@
 transfers between backends.
 
 Every run's policy is flown greedily in the run's own scenario on each backend, on the same
-evaluation seeds (`rl.rollout.eval_seeds`), one env per backend. Per backend: success and
+evaluation seeds (`rl.evaluation.rollout.eval_seeds`), one env per backend. Per backend: success and
 collision (crash) rate of the drone-episodes with Wilson 95 % confidence intervals, and the
 mean steps of the successful episodes (a slower velocity response shows there first); where a
 backend's rates are more than 10 points from the first backend's, a line on why, from the
 episodes (outcome split, steps, distance per step, where the actions part). `--json FILE` also
-writes the table. The experiment report's backend table runs the same code (`rl.backend_transfer`).
+writes the table. The experiment report's backend table runs the same code (`rl.experiments.backend_transfer`).
 """
 
 from __future__ import annotations
@@ -52,15 +52,15 @@ def main(args: argparse.Namespace) -> int:
         print("sitl-bridge transfer: --episodes must be at least 1", file=sys.stderr)
         return 2
     # torch and mavsdk are only imported for this command
-    from sitl_bridge.rl.backend_transfer import (
+    from sitl_bridge.rl.experiments.backend_transfer import (
         differs,
         fly_on_backend,
         same_actions,
         summary,
         why_differ,
     )
-    from sitl_bridge.rl.policy import policy_from_checkpoint
-    from sitl_bridge.rl.run_dir import run_dir_of, run_scenario
+    from sitl_bridge.rl.learner.policy import policy_from_checkpoint
+    from sitl_bridge.rl.training.run_dir import run_dir_of, run_scenario
 
     rows = []
     try:

@@ -21,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def check_main(args: argparse.Namespace) -> int:
     """Validate every file; errors are one line each on stderr; exit status 1 if any failed."""
-    from sitl_bridge.rl.scenario_file import check_scenario_file
+    from sitl_bridge.rl.training.scenario_file import check_scenario_file
 
     status = 0
     for path in args.files:

@@ -1,0 +1,1 @@
+"""Flying a policy: rollouts on fixed reset seeds, greedy evaluation, videos."""

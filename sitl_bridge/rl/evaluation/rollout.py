@@ -1,0 +1,95 @@
+"""Greedy rollouts: fly a policy for whole episodes and keep what each drone did.
+
+Shared by evaluation (success/crash rates) and rule extraction (what the behaviour looks like).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sitl_bridge.rl.common.drones_env import DronesEnv, episode_outcome
+
+
+@dataclass
+class Trace:
+    """One drone's episode under a fixed policy."""
+
+    episode: int
+    drone: int
+    seed: int
+    actions: list[int] = field(default_factory=list)
+    reward: float = 0.0
+    outcome: str = "timeout"
+    positions_enu_m: list[list[float]] = field(default_factory=list)
+    """Position after reset and after every step, when the env reports `position_enu_m`."""
+    goal_enu_m: list[float] | None = None
+
+    @property
+    def steps(self) -> int:
+        return len(self.actions)
+
+
+def position_of(info: dict[str, Any]) -> list[float] | None:
+    """The drone's position (ENU m) an env step or reset reported in its info, if any."""
+    value = info.get("position_enu_m")
+    return None if value is None else [float(v) for v in np.asarray(value).reshape(-1)]
+
+
+def record_step(traces: dict[int, Trace], chosen: dict[int, int], result: Any) -> None:
+    """Add one simultaneous step (`DronesEnv.step`'s result for the `chosen` actions) to each
+    acting drone's trace: action, reward, position, and the outcome when its episode ended."""
+    for i, action in chosen.items():
+        info = result.infos.get(i, {})
+        trace = traces[i]
+        trace.actions.append(int(action))
+        trace.reward += result.rewards[i]
+        position = position_of(info)
+        if position is not None:
+            trace.positions_enu_m.append(position)
+        if result.terminated[i] or result.truncated[i]:
+            trace.outcome = episode_outcome(info, result.terminated[i], result.truncated[i])
+
+
+def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable[int],
+            on_episode: Callable[[list[Trace]], None] | None = None, videos: Any = None) -> list[Trace]:
+    """One episode per seed, every drone acting with `policy`; one Trace per drone per episode.
+    `on_episode(traces)` runs after each episode with that episode's traces (progress, logs);
+    `videos` (`rl.evaluation.video.EpisodeVideos`) gets the env's rendered frame after reset and each step."""
+    traces: list[Trace] = []
+    for episode, seed in enumerate(seeds):
+        obs, infos = env.reset(seed)
+        if videos is not None:
+            videos.add(env.render())
+        mine = {i: Trace(episode, i, seed) for i in range(env.num_drones)}
+        for i, trace in mine.items():
+            start = position_of(infos.get(i, {}))
+            if start is not None:
+                trace.positions_enu_m.append(start)
+            goal = infos.get(i, {}).get("goal_enu_m")
+            trace.goal_enu_m = None if goal is None else [float(v) for v in np.asarray(goal).reshape(-1)]
+        while env.live:
+            chosen = {i: policy(obs[i]) for i in env.live}
+            result = env.step(chosen)
+            if videos is not None:
+                videos.add(env.render())
+            record_step(mine, chosen, result)
+            obs.update(result.obs)
+        traces.extend(mine.values())
+        if videos is not None:
+            videos.end_episode(episode)
+        if on_episode is not None:
+            on_episode(list(mine.values()))
+    return traces
+
+
+EVAL_SEED_OFFSET = 1_000_003
+"""Evaluation and rule-extraction episodes use seeds far from the training episodes'."""
+
+
+def eval_seeds(seed: int, episodes: int) -> list[int]:
+    """Reset seeds of `episodes` evaluation episodes (disjoint from training's)."""
+    return [int(s) for s in np.random.SeedSequence([seed, EVAL_SEED_OFFSET]).generate_state(episodes)]
