@@ -36,7 +36,7 @@ from sitl_bridge.ports import HIL_BASE_PORT
 from sitl_bridge.sensors import BaroSample, GpsSample, GroundTruth, SensorFrame
 
 from .estimator import NO_TRUTH
-from .hil_fused import FusedSensorStep
+from .hil_fused import FusedSensorStep, FusedStep
 from .modes import system_id_for
 
 if TYPE_CHECKING:
@@ -114,7 +114,8 @@ class HilClient:
         self._truth_origin: tuple[float, float, float] | None = None
         self.last_time_usec = 0
         # the usual step in two compiled calls (sensor-estimating autopilots; see hil_fused)
-        self._fused = None if self._wants_truth else FusedSensorStep(self)
+        self._fused = None if self._wants_truth else FusedSensorStep(
+            autopilot, self._encoder.system_id, self._encoder.component_id)
 
     # --- connection ---------------------------------------------------------------------------
     @property
@@ -235,8 +236,13 @@ class HilClient:
 
     def _handle_bytes(self, data: bytes) -> int:
         parser = self._parser
-        if self._fused is not None and not parser.holds_partial and self._fused.handle(data):
-            return 1
+        if self._fused is not None and not parser.holds_partial:
+            fused = self._fused.handle(data, self._encoder.take_sequence)
+            if fused is not None:
+                self._count_fused(fused)
+                self._send(fused.frame)
+                self.stats.actuator_msgs += 1
+                return 1
         parsed = parser.stats
         garbage, bad_crc = parsed.garbage_bytes, parsed.bad_crc
         frames = parser.feed(data)
@@ -269,6 +275,14 @@ class HilClient:
             self._step(pending)
             answered += 1
         return answered
+
+    def _count_fused(self, step: FusedStep) -> None:
+        """The counters of a fused step, as the per-message path would have counted it."""
+        self.last_time_usec = step.time_us
+        self.stats.sensor_msgs += 1
+        self._parser.stats.frames += step.frames_read
+        if step.with_gps:
+            self.stats.gps_msgs += 1
 
     def _step(self, frame: SensorFrame) -> None:
         command = self.autopilot.update(frame)

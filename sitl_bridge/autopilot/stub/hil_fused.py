@@ -25,7 +25,7 @@ takes the per-message path.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -58,9 +58,10 @@ from .commander import NOT_STEADY, STEADY_OFF, steady_output
 from .estimator import attitude_and_rates, estimate_values, estimator_imu_step, position_valid
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from .autopilot import StubAutopilot
     from .estimator import Estimate
-    from .hil_client import HilClient
 
 HANDLED, WITH_BARO, WITH_GPS = 1, 2, 4
 FRAME_BYTES = HEADER + ACT_LEN + 2
@@ -217,23 +218,34 @@ def actuator_message(out: np.ndarray, scratch: np.ndarray, sequence: int, system
     return write_frame(out, 0, scratch, ACT_LEN, sequence, system_id, component_id, ACT_ID, ACT_CRC)
 
 
-class FusedSensorStep:
-    """`HilClient`'s fast path (module docstring); `handle` answers a read or declines it."""
+class FusedStep(NamedTuple):
+    """What one handled step made: the HIL_ACTUATOR_CONTROLS frame for the caller to send, and
+    what it read (for the caller's counters)."""
 
-    def __init__(self, client: HilClient) -> None:
-        self.client = client
+    frame: memoryview
+    time_us: int
+    frames_read: int
+    with_gps: bool
+
+
+class FusedSensorStep:
+    """`HilClient`'s fast path (module docstring): `handle` answers a read with the frame to send,
+    or declines it. It owns no socket, parser or encoder: the client sends and counts."""
+
+    def __init__(self, autopilot: StubAutopilot, system_id: int, component_id: int) -> None:
+        self.autopilot = autopilot
         self._scratch = np.zeros(SCRATCH_BYTES, np.uint8)
         self._gps = np.zeros(12, np.int64)
         self._out = np.zeros(FRAME_BYTES, np.uint8)
         self._view = memoryview(self._out)
-        self._ids = (client._encoder.system_id, client._encoder.component_id)
+        self._ids = (system_id, component_id)
         self._rate = self._attitude = None
         self._vectors: tuple = ()
         self.warm_up()
 
     def warm_up(self) -> None:
         """Load (or compile) both kernels on scratch state, not at the first step."""
-        ap = self.client.autopilot
+        ap = self.autopilot
         est = ap.estimator
         ap.refresh_gains()  # the steady step divides by some of them
         level = est.state.copy()
@@ -299,10 +311,10 @@ class FusedSensorStep:
             )
         return self._vectors
 
-    def handle(self, data: bytes) -> int:
-        """Answer `data` when it is one usual step (1), else 0 with nothing changed."""
-        client = self.client
-        ap = client.autopilot
+    def handle(self, data: bytes, take_sequence: Callable[[], int]) -> FusedStep | None:
+        """Answer `data` when it is one usual step, else None with nothing changed.
+        `take_sequence` gives the answer's MAVLink sequence number (taken only for an answer)."""
+        ap = self.autopilot
         est = ap.estimator
         last = est.last_time_us
         status, time_us, dt, pressure_hpa, values = sensor_estimate(
@@ -310,20 +322,15 @@ class FusedSensorStep:
         )
         if not status:
             return 0
-        est.last_time_us = client.last_time_usec = time_us
-        stats = client.stats
-        stats.sensor_msgs += 1
-        client._parser.stats.frames += 1
+        est.last_time_us = time_us
         gps = baro = None
         if status != HANDLED:
             if status & WITH_GPS:
                 gps = GpsSample(*self._gps.tolist())
-                stats.gps_msgs += 1
-                client._parser.stats.frames += 1
             if status & WITH_BARO:
                 baro = BaroSample(pressure_hpa, 0.0, 0.0)  # the estimator reads the pressure only
         e = est.finish(values, time_us, dt, gps, baro)
-        sequence = client._encoder.take_sequence()
+        sequence = take_sequence()
         size = 0
         commander = ap.commander
         if commander.steady and ap.gains_current:
@@ -335,9 +342,7 @@ class FusedSensorStep:
                 ap.flew_steady(time_us, outer_ran, flying)
         if not size:
             size = self._actuators(ap, e, sequence, time_us)
-        client._send(self._view[:size])
-        stats.actuator_msgs += 1
-        return 1
+        return FusedStep(self._view[:size], time_us, 1 if gps is None else 2, gps is not None)
 
     def _actuators(self, ap: StubAutopilot, e: Estimate, sequence: int, time_us: int) -> int:
         """The commander and position loop in Python (`prepare`), then `actuator_frame`."""
