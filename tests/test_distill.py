@@ -106,7 +106,7 @@ def test_tree_policy_paths_text_and_rules_round_trip(tmp_path: Path) -> None:
     assert leaf.action == 7
     assert [(c.feature, c.op, c.value) for c in conditions] == [(1, ">", 6.5), (2, "<=", 3.0)]
 
-    layout = observation_layout(load_scenario(EMPTY))
+    layout = observation_layout(load_scenario(EMPTY).task.observation)
     labels = feature_labels(layout, 51)
     assert labels[:4] == ["position[0]", "position[1]", "position[2]", "orientation[0]"]
     text = tree_text(tree, labels, "goal")
@@ -135,13 +135,13 @@ def test_tree_policy_paths_text_and_rules_round_trip(tmp_path: Path) -> None:
 
 def test_tree_text_says_where_each_ray_it_tests_points() -> None:
     scenario = load_scenario(EMPTY)  # 35 horizontal rays, the last one looking back
-    layout = observation_layout(scenario)
+    layout = observation_layout(scenario.task.observation)
     labels = feature_labels(layout, 51)
     ahead, last = layout["lidar"].start + 17, layout["lidar"].stop - 1
     tree = TreePolicy(Split(ahead, 3.0, Leaf(UP, 2), Split(last, 1.0, Leaf(UP, 1), Leaf(TOWARD_GOAL, 3))))
-    text = tree_text(tree, labels, "world", index_words(scenario))
+    text = tree_text(tree, labels, "world", index_words(scenario.task.observation))
     assert text.splitlines()[-1] == "rays: lidar[17] ahead; lidar[34] behind"
-    assert set(index_words(scenario)) == set(range(layout["lidar"].start, last + 1))  # the rays only
+    assert set(index_words(scenario.task.observation)) == set(range(layout["lidar"].start, last + 1))  # the rays only
 
 
 def test_a_single_leaf_reads_as_always() -> None:
@@ -171,7 +171,7 @@ def test_a_shallow_tree_teacher_is_recovered_in_the_real_scenario() -> None:
         return int(np.argmax(scripted_q(np.asarray(obs)[None])[0]))
 
     try:
-        result = distill_policy(env, scripted_q, teacher, layout=observation_layout(scenario), frame="world",
+        result = distill_policy(env, scripted_q, teacher, layout=observation_layout(scenario.task.observation), frame="world",
                                 world=EMPTY, covers=["empty.yaml"], max_depth=4, iterations=2, episodes=3)
     finally:
         env.close()

@@ -271,7 +271,7 @@ def test_lidar_change_shows_a_walker_coming_closer(tmp_path: Path) -> None:
     path.write_text(WALKER_SCENARIO)
     env = make_env(path, seed=0)
     try:
-        layout = observation_layout(env.scenario)
+        layout = observation_layout(env.scenario.task.observation)
         obs, _ = env.reset(seed=0)
         assert np.all(obs[layout["lidar_change"]] == 0.0)  # nothing seen moving yet
         east = int(np.argmin(obs[layout["lidar"]]))         # the ray that sees the walker

@@ -131,10 +131,10 @@ rules:
 # -- the logic: layout, features, ops, first match -------------------------------------------------
 
 def test_observation_layout_follows_the_feature_list() -> None:
-    layout = observation_layout(load_scenario(EMPTY))
+    layout = observation_layout(load_scenario(EMPTY).task.observation)
     assert layout == {"position": slice(0, 3), "orientation": slice(3, 6), "lidar": slice(6, 41),
                       "dummy": slice(41, 51)}
-    assert observation_layout(load_scenario(OBSTACLE))["lidar"] == slice(6, 53)
+    assert observation_layout(load_scenario(OBSTACLE).task.observation)["lidar"] == slice(6, 53)
 
 
 def test_parse_feature() -> None:
@@ -186,7 +186,7 @@ def test_a_distilled_tree_flies_as_it_decides(tmp_path: Path) -> None:
     up, hover = action_code("up"), action_code("hover")
     tree = TreePolicy(Split(1, 2.5, Leaf(action_code("north"), 4),
                             Split(2, 3.0, Split(6 + 17, 1.5, Leaf(up, 2), Leaf(hover, 1)), Leaf(6, 3))))
-    labels = feature_labels(observation_layout(load_scenario(EMPTY)), 51)
+    labels = feature_labels(observation_layout(load_scenario(EMPTY).task.observation), 51)
     document = tree_rules(tree, labels, frame="world", name="tree", covers=["empty.yaml"], source="test")
     path = write_rules(tmp_path, yaml.safe_dump(document, sort_keys=False))
     policy = rule_policy(path, EMPTY)

@@ -38,17 +38,13 @@ head-on course see mirror-image situations as the same numbers.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sitl_bridge.envs.view import DroneView, ScenarioLimits
 from sitl_bridge.errors import ConfigError, Node
-
-if TYPE_CHECKING:  # scenario.py imports this module (through task.py)
-    from sitl_bridge.envs.scenario import Scenario
 
 LIDAR_GROUPS = ("horizontal", "up", "down")
 
@@ -334,12 +330,12 @@ def parse_observation(node: Node, limits: ScenarioLimits) -> list[Feature]:
     return features
 
 
-def observation_layout(scenario: Scenario) -> dict[str, slice]:
-    """Feature name -> its slice of one drone's observation vector, in observation order.
+def observation_layout(observation: Sequence[Feature]) -> dict[str, slice]:
+    """Feature name -> its slice of one drone's observation vector (`task.observation`), in order.
     A name listed twice keeps its first block under `name` and the later ones as `name@2`, ..."""
     layout: dict[str, slice] = {}
     start = 0
-    for feature in scenario.task.observation:
+    for feature in observation:
         key, n = feature.name, 1
         while key in layout:
             n += 1
@@ -349,12 +345,12 @@ def observation_layout(scenario: Scenario) -> dict[str, slice]:
     return layout
 
 
-def index_words(scenario: Scenario) -> dict[int, str]:
-    """Observation index -> what it points at in words, for the features that say it (each lidar
+def index_words(observation: Sequence[Feature]) -> dict[int, str]:
+    """Observation index (of `task.observation`) -> what it points at in words, for the features that say it (each lidar
     ray's direction: `ahead`, `below, 37 deg ahead`); others are left out."""
     words: dict[int, str] = {}
     start = 0
-    for feature in scenario.task.observation:
+    for feature in observation:
         words.update({start + i: label for i, label in enumerate(feature.labels)})
         start += feature.size
     return words

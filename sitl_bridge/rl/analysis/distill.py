@@ -290,8 +290,8 @@ def distill_run(run_dir: str | Path, *, world: str | Path | None = None, max_dep
         if env.obs_dim != policy.obs_dim:
             raise ValueError(f"{policy.source}: the network takes {policy.obs_dim} observation values, "
                              f"{world} gives {env.obs_dim}")
-        return distill_policy(env, network_q(policy.network), policy, layout=observation_layout(scenario),
-                              words=index_words(scenario),
+        return distill_policy(env, network_q(policy.network), policy, layout=observation_layout(scenario.task.observation),
+                              words=index_words(scenario.task.observation),
                               frame=scenario.task.action.frame, world=str(world), covers=covers,
                               max_depth=max_depth, iterations=iterations, episodes=episodes, seed=seed,
                               source=str(home or run_dir), on_candidate=on_candidate)

@@ -260,7 +260,7 @@ def bind(rules: RuleSet, scenario: Scenario, *, leave_out_absent: bool = False) 
                     f"{rules.source}: frame: expected {frame} (the action frame of {scenario.task.source}; "
                     f"{rule.path}.action {action_name(rule.action, rules.frame)!r} depends on it), "
                     f"got {rules.frame!r}")
-    layout = observation_layout(scenario)
+    layout = observation_layout(scenario.task.observation)
     columns = tuple(None if leave_out_absent and any(c.name not in layout for c in rule.conditions) else
                     tuple(_column(c, layout, scenario, rules.source) for c in rule.conditions)
                     for rule in rules.rules)
