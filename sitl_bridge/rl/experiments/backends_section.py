@@ -38,8 +38,8 @@ from sitl_bridge.rl.experiments.backend_transfer import (
     summary,
     why_differ,
 )
-from sitl_bridge.rl.experiments.results import EVAL_SEED_BASE
 from sitl_bridge.rl.experiments.runner import RESERVED, ReportSettings
+from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
 
 log = logging.getLogger(__name__)
 

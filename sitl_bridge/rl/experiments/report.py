@@ -14,8 +14,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from sitl_bridge.rl.experiments.results import EVAL_SEED_BASE, THRESHOLD
+from sitl_bridge.rl.experiments.results import THRESHOLD
 from sitl_bridge.rl.experiments.runner import RESERVED, Experiment, ReportSettings
+from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
 
 FIGURES = "figures"
 RESULTS_MD = "RESULTS.md"

@@ -26,7 +26,6 @@ Definitions (also printed in RESULTS.md):
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import math
@@ -39,6 +38,7 @@ from typing import Any
 from sitl_bridge.cores import core_counter, pin_next_core
 from sitl_bridge.rl.common.atomic import atomic_write_json, atomic_write_text
 from sitl_bridge.rl.common.episode_files import log_exists, open_log
+from sitl_bridge.rl.experiments import backends_section, rules_section, trees_section
 from sitl_bridge.rl.experiments.runner import (
     ComparisonSpec,
     Experiment,
@@ -51,28 +51,28 @@ from sitl_bridge.rl.experiments.runner import (
     scenario_root,
     stage_folder,
 )
+from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
 from sitl_bridge.rl.training.run_dir import EPISODES_FILE, EVALS_FILE
 
 log = logging.getLogger(__name__)
 
 THRESHOLD = 0.9
 """Greedy success that counts as learned (the `_90` of `episodes_to_90`)."""
-EVAL_SEED_BASE = 1_000_000
-"""Evaluation seeds of the report: `eval_seeds(EVAL_SEED_BASE + seed, n)`, held out from the
-periodic evaluations (`eval_seeds(seed, n)`) that picked the best checkpoint."""
 GREEDY_FILE = "greedy_eval.json"
 """Cache of a run's report evaluation, in its sweep job folder (skipped when still valid)."""
 TEST_NAME = ("Mann-Whitney U (two-sided) on episodes to 90 % greedy success; runs that never "
              "reached it count as their episode budget")
-SECTION_HOOKS: dict[str, str] = {
-    "rules": "sitl_bridge.rl.experiments.rules_section:add_results_section",
-    "trees": "sitl_bridge.rl.experiments.trees_section:add_results_section",
-    "backends": "sitl_bridge.rl.experiments.backends_section:add_results_section",
+SectionHook = Callable[..., None]
+"""`add_results_section(results: dict, out: Path, *, settings: ReportSettings, say) -> None`."""
+SECTION_HOOKS: dict[str, SectionHook] = {
+    "rules": rules_section.add_results_section,
+    "trees": trees_section.add_results_section,
+    "backends": backends_section.add_results_section,
 }
-"""Sections other modules add: `add_results_section(results: dict, out: Path, *, settings:
-ReportSettings, say) -> None` sets `results[name]` (the rules hook also `results["behaviour"]`;
-it may read the runs through each seed's `run_dir`, relative to `out`). A section whose module is
-not installed is left out and reported as not run."""
+"""Sections other modules add: each sets `results[name]` (the rules hook also
+`results["behaviour"]`; it may read the runs through each seed's `run_dir`, relative to `out`).
+A section that cannot run here (an optional package missing) or fails is left out and reported
+as not run."""
 
 
 # -- one run -------------------------------------------------------------------------------
@@ -314,24 +314,16 @@ def _comparison(experiment: Experiment, comparison: ComparisonSpec, results: dic
     return entry
 
 
-def add_sections(results: dict[str, Any], out: str | Path, hooks: dict[str, str] | None = None, *,
+def add_sections(results: dict[str, Any], out: str | Path, hooks: dict[str, SectionHook] | None = None, *,
                  settings: ReportSettings | None = None, say: Callable[[str], None] = print) -> dict[str, str]:
-    """Run every section hook whose module is installed; returns why the others are missing
-    (`{name: reason}`), which RESULTS.md reports as not run. A failing hook is reported, not raised:
-    the report of hours of training must still be written."""
+    """Run every section hook; returns why some are missing (`{name: reason}`), which RESULTS.md
+    reports as not run. A failing hook is reported, not raised: the report of hours of training
+    must still be written."""
     missing: dict[str, str] = {}
-    for name, target in (SECTION_HOOKS if hooks is None else hooks).items():
-        module_name, _, function = target.partition(":")
+    for name, hook in (SECTION_HOOKS if hooks is None else hooks).items():
+        target = f"{hook.__module__}.{hook.__qualname__}"
         try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name and module_name.startswith(exc.name):
-                missing[name] = f"{module_name} is not part of this installation"
-                continue
-            missing[name] = f"{module_name} failed to import: {exc}"
-            continue
-        try:
-            getattr(module, function)(results, Path(out), settings=settings or ReportSettings(), say=say)
+            hook(results, Path(out), settings=settings or ReportSettings(), say=say)
         except Exception as exc:  # noqa: BLE001 - reported in RESULTS.md and on stderr
             log.exception("results section %s failed", name)
             results.pop(name, None)

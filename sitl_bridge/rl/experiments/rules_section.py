@@ -34,8 +34,8 @@ from typing import Any
 
 from sitl_bridge.rl.analysis.candidate_rules import ANALYSIS_VERSION
 from sitl_bridge.rl.experiments import report_cache
-from sitl_bridge.rl.experiments.results import EVAL_SEED_BASE
 from sitl_bridge.rl.experiments.runner import RESERVED, ReportSettings
+from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
 
 log = logging.getLogger(__name__)
 

@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from sitl_bridge.rl.experiments import report_cache
-from sitl_bridge.rl.experiments.results import EVAL_SEED_BASE
 from sitl_bridge.rl.experiments.runner import RESERVED, ReportSettings
+from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
 
 log = logging.getLogger(__name__)
 
