@@ -93,3 +93,9 @@ EVAL_SEED_OFFSET = 1_000_003
 def eval_seeds(seed: int, episodes: int) -> list[int]:
     """Reset seeds of `episodes` evaluation episodes (disjoint from training's)."""
     return [int(s) for s in np.random.SeedSequence([seed, EVAL_SEED_OFFSET]).generate_state(episodes)]
+
+
+def episode_seed(run_seed: int, episode: int) -> int:
+    """The reset seed of training `episode` in a run seeded `run_seed` (independent streams per
+    episode)."""
+    return int(np.random.SeedSequence([run_seed, episode]).generate_state(1)[0])

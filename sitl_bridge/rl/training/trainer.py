@@ -37,7 +37,7 @@ import torch
 
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.rl.common.atomic import append_durably, atomic_write_bytes, atomic_write_json
-from sitl_bridge.rl.common.drones_env import DronesEnv, EnvFactory, StepResult
+from sitl_bridge.rl.common.drones_env import DronesEnv, EnvFactory
 from sitl_bridge.rl.common.episode_log import EpisodeLog, EpisodeRecord, read_records
 from sitl_bridge.rl.common.progress import Progress
 from sitl_bridge.rl.common.stats import wilson_interval
@@ -47,15 +47,12 @@ from sitl_bridge.rl.evaluation.evaluate import (
     constant_action_baseline,
     evaluate_on,
 )
-from sitl_bridge.rl.evaluation.rollout import Trace
+from sitl_bridge.rl.evaluation.rollout import Trace, episode_seed
 from sitl_bridge.rl.learner import checkpoint as ckpt
 from sitl_bridge.rl.learner.checkpoint_fit import check_fits
 from sitl_bridge.rl.learner.config import TrainConfig
-from sitl_bridge.rl.learner.dqn import DQNAgent, NetworkShape, epsilon_at, learning_rate_at
-from sitl_bridge.rl.learner.exploration import RepeatedExploration
-from sitl_bridge.rl.learner.nstep import NStepFolder, Step
-from sitl_bridge.rl.learner.prioritized import Priorities
-from sitl_bridge.rl.learner.replay_buffer import ReplayBuffer
+from sitl_bridge.rl.learner.dqn import NetworkShape
+from sitl_bridge.rl.learner.dqn_learner import DQNLearner
 from sitl_bridge.rl.learner.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
 from sitl_bridge.rl.training import run_dir as rd
 from sitl_bridge.rl.training.early_end import EarlyEndWatch
@@ -71,11 +68,6 @@ log = logging.getLogger(__name__)
 
 class ShapeMismatch(ValueError):
     """A network cannot be transferred: its input/output sizes differ from the scenario's."""
-
-
-def episode_seed(run_seed: int, episode: int) -> int:
-    """The reset seed of `episode` in a run seeded `run_seed` (independent streams per episode)."""
-    return int(np.random.SeedSequence([run_seed, episode]).generate_state(1)[0])
 
 
 def resolve_device(name: str) -> torch.device:
@@ -138,21 +130,11 @@ class Trainer:
         self.rng = np.random.default_rng(spec.seed)
         shape = NetworkShape(self.env.obs_dim, self.env.n_actions, config.layers, config.hidden_units,
                              dueling=config.dueling, normalize=config.normalize_observations)
-        self.agent = DQNAgent(shape, config, self.device)
-        self.explorer = (RepeatedExploration(self.agent.greedy, shape.n_actions, config.explore_repeat_max,
-                                             config.explore_repeat_exponent)
-                         if config.explore_repeat_max > 1 else None)
-        priorities = (Priorities(config.replay_capacity, config.per_alpha, config.per_epsilon)
-                      if config.prioritized_replay else None)
-        self.replay = ReplayBuffer(config.replay_capacity, shape.obs_dim, priorities)
+        self.learner = DQNLearner(shape, config, self.device, self.rng)
         self.store = ReplayStore(self.run_dir / rd.REPLAY, shape.obs_dim, config.replay_segment_rows)
         self.episode_log = EpisodeLog(self.run_dir / rd.EPISODES_FILE)
         self.checkpoint_dir = self.run_dir / rd.CHECKPOINTS
 
-        self.episode = 0
-        self.global_step = 0
-        self.updates = 0
-        self.epsilon_max = config.epsilon_max
         self.recent_success: deque[bool] = deque(maxlen=config.success_window)
         self.early_end = EarlyEndWatch.of(getattr(self.env.env, "scenario", None), config.gamma)
         self._kept: list[tuple[Path, int]] = []  # (checkpoint, replay rows it needs)
@@ -164,6 +146,19 @@ class Trainer:
         self.evaluation_due = False
         """The state checkpointed last is one that gets a periodic evaluation (kept in the
         checkpoint, so a run killed during that evaluation flies it again on resume)."""
+
+    # The learning state lives in the learner; the run's own code reads and restores it here.
+    agent = property(lambda self: self.learner.agent)
+    replay = property(lambda self: self.learner.replay)
+    explorer = property(lambda self: self.learner.explorer)
+    episode = property(lambda self: self.learner.episode,
+                       lambda self, value: setattr(self.learner, "episode", value))
+    global_step = property(lambda self: self.learner.global_step,
+                           lambda self, value: setattr(self.learner, "global_step", value))
+    updates = property(lambda self: self.learner.updates,
+                       lambda self, value: setattr(self.learner, "updates", value))
+    epsilon_max = property(lambda self: self.learner.epsilon_max,
+                           lambda self, value: setattr(self.learner, "epsilon_max", value))
 
     # -- construction -------------------------------------------------------------------
     @classmethod
@@ -363,7 +358,7 @@ class Trainer:
 
     # -- the loop ---------------------------------------------------------------------------
     def epsilon(self) -> float:
-        return epsilon_at(self.global_step, self.epsilon_max, self.config.epsilon_min, self.config.epsilon_decay)
+        return self.learner.epsilon()
 
     def train(self, on_episode: Callable[[list[EpisodeRecord]], bool | None] | None = None) -> TrainResult:
         """Train until `config.episodes` episodes are done. `on_episode(records)` runs after each
@@ -501,76 +496,44 @@ class Trainer:
         once: rl/training/vector_collect.py), learn from it and persist it; the caller checkpoints."""
         if self.collector is None:
             return self.run_episode()
-        return self.collector.run_wave(self)
+        return self.collector.run_wave(self.learner, self.spec.seed, self.persist)
 
     def run_episode(self) -> list[EpisodeRecord]:
         """Fly one training episode with every drone, learn from it, persist it."""
-        config, agent = self.config, self.agent
-        agent.set_learning_rate(learning_rate_at(self.episode, config.episodes,
-                                                 config.learning_rate, config.learning_rate_end))
+        learner = self.learner
+        learner.start_episodes()
         wall_start, cpu_start = time.perf_counter(), time.process_time()
-        env_seed = episode_seed(self.spec.seed, self.episode)
-        epsilon_start = self.epsilon()
+        episode = learner.episode
+        env_seed = episode_seed(self.spec.seed, episode)
+        epsilon_start = learner.epsilon()
         obs, reset_infos = self.env.reset(env_seed)
-        agent.observe(np.stack(list(obs.values())))
-        folder = self.n_step_folder()
+        learner.observe(np.stack(list(obs.values())))
+        folder = learner.n_step_folder()
         tally = EpisodeTally(self.env.num_drones, reset_infos)
         losses: list[float] = []
         new_rows: list[np.ndarray] = []
-        explorer = self.explorer
-        if explorer is not None:
-            explorer.start_episode()
         while self.env.live:
-            epsilon = self.epsilon()
-            chosen = {i: agent.act(obs[i], epsilon, self.rng) if explorer is None
-                      else explorer.act(i, obs[i], epsilon, self.rng) for i in self.env.live}
+            epsilon = learner.epsilon()
+            chosen = {i: learner.act(i, obs[i], epsilon) for i in self.env.live}
             result = self.env.step(chosen)
-            self.global_step += 1
             for i, action in chosen.items():
                 tally.add(i, action, result.rewards[i], result.terminated[i], result.truncated[i],
                           result.infos.get(i, {}))
-            rows = self.transition_rows(folder, chosen, obs, result)
+            rows = learner.transition_rows(folder, chosen, obs, result)
             if len(rows):
-                self.replay.add_rows(rows)
+                learner.remember(rows)
                 new_rows.append(rows)
-            agent.observe(np.stack([result.obs[i] for i in chosen]))
+            learner.observe(np.stack([result.obs[i] for i in chosen]))
             obs.update(result.obs)
-            self.learn_due(self.global_step - 1, self.global_step, losses)
-        self.episode += 1
-        if config.target_update_unit == "episodes" and self.episode % config.target_update_period == 0:
-            agent.align_target()
+            learner.after_steps(1, losses)
+        learner.end_episodes(1)
 
-        records = tally.records(episode=self.episode - 1, wall_time_s=time.perf_counter() - wall_start,
+        records = tally.records(episode=episode, wall_time_s=time.perf_counter() - wall_start,
                                 epsilon=epsilon_start, mean_loss=float(np.mean(losses)) if losses else None,
-                                global_step=self.global_step, env_seed=env_seed,
+                                global_step=learner.global_step, env_seed=env_seed,
                                 cpu_time_s=time.process_time() - cpu_start)
         self.persist(records, new_rows)
         return records
-
-    def n_step_folder(self) -> NStepFolder | None:
-        """A fresh n-step folder for an episode (None for 1-step returns)."""
-        return NStepFolder(self.config.n_step, self.config.gamma) if self.config.n_step > 1 else None
-
-    def transition_rows(self, folder: NStepFolder | None, chosen: dict[int, int], obs: dict[int, np.ndarray],
-                        result: StepResult) -> np.ndarray:
-        """Replay rows of one env step of the drones in `chosen` (n-step: those complete now)."""
-        if folder is None:
-            return self.replay.make_rows(
-                np.stack([obs[i] for i in chosen]), np.array(list(chosen.values())),
-                np.array([result.rewards[i] for i in chosen]), np.stack([result.obs[i] for i in chosen]),
-                np.array([float(result.terminated[i]) for i in chosen]))
-        return self._fold_n_step(folder, chosen, obs, result)
-
-    def learn_due(self, steps_before: int, steps_after: int, losses: list[float]) -> None:
-        """The DQN updates due for env steps `steps_before`+1 .. `steps_after`: one every
-        `train_every` steps once the replay holds enough rows (losses appended to `losses`)."""
-        config = self.config
-        for step in range(steps_before + 1, steps_after + 1):
-            if len(self.replay) >= max(config.batch_size, config.learning_starts) and step % config.train_every == 0:
-                losses.append(self._learn_step())
-                self.updates += 1
-                if config.target_update_unit == "steps" and self.updates % config.target_update_period == 0:
-                    self.agent.align_target()
 
     def persist(self, records: list[EpisodeRecord], new_rows: list[np.ndarray]) -> None:
         """Count finished episodes' successes, then persist their replay rows and then their
@@ -581,35 +544,6 @@ class Trainer:
         if new_rows:
             self.store.append(np.concatenate(new_rows))
         self.episode_log.append(records)
-
-    def _fold_n_step(self, folder: NStepFolder, chosen: dict[int, int], obs: dict[int, np.ndarray],
-                     result: StepResult) -> np.ndarray:
-        """This step's transitions folded into the n-step rows that are complete now."""
-        ready = []
-        for i, action in chosen.items():
-            step = Step(obs[i], action, float(result.rewards[i]), result.obs[i], bool(result.terminated[i]))
-            ready += folder.push(i, step, bool(result.terminated[i] or result.truncated[i]))
-        if not ready:
-            return self.replay.make_rows(np.zeros((0, self.agent.shape.obs_dim)), np.zeros(0),
-                                         np.zeros(0), np.zeros((0, self.agent.shape.obs_dim)), np.zeros(0))
-        return self.replay.make_rows(np.stack([r.obs for r in ready]), np.array([r.action for r in ready]),
-                                     np.array([r.reward for r in ready]),
-                                     np.stack([r.next_obs for r in ready]),
-                                     np.array([r.terminated for r in ready]))
-
-    def _learn_step(self) -> float:
-        """One gradient update from the replay (by priority when prioritized replay is on)."""
-        config = self.config
-        if self.replay.priorities is None:
-            return self.agent.update(self.replay.sample(config.batch_size, self.rng, self.device))
-        # beta anneals from per_beta to 1 over the run (full bias correction at the end).
-        fraction = min(self.episode / max(config.episodes - 1, 1), 1.0)
-        beta = config.per_beta + (1.0 - config.per_beta) * fraction
-        batch = self.replay.sample_prioritized(config.batch_size, beta, self.rng, self.device)
-        loss = self.agent.update(batch)
-        assert batch.slots is not None
-        self.replay.priorities.update(batch.slots, self.agent.last_td_errors)
-        return loss
 
     def _log_tensorboard(self, records: list[EpisodeRecord]) -> None:
         if self._writer is None:

@@ -25,20 +25,18 @@ it saves is the per-step network call and its Python overhead.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.rl.common.drones_env import DronesEnv, EnvFactory
 from sitl_bridge.rl.common.episode_log import EpisodeRecord
-from sitl_bridge.rl.learner.dqn import learning_rate_at
+from sitl_bridge.rl.evaluation.rollout import episode_seed
+from sitl_bridge.rl.learner.dqn_learner import DQNLearner
 from sitl_bridge.rl.learner.nstep import NStepFolder
 from sitl_bridge.rl.training.episode_tally import EpisodeTally
-
-if TYPE_CHECKING:
-    from sitl_bridge.rl.training.trainer import Trainer
 
 
 @dataclass
@@ -75,39 +73,32 @@ class VectorCollector:
             for copy in self.copies:
                 copy.close()
 
-    def run_wave(self, trainer: Trainer) -> list[EpisodeRecord]:
-        """Fly the next wave of episodes (fewer than N when the budget ends sooner), learn from
-        it and persist it; the records come in episode order."""
-        from sitl_bridge.rl.training.trainer import episode_seed
-
-        config, agent = trainer.config, trainer.agent
-        first = trainer.episode
-        count = max(1, min(len(self.copies), config.episodes - first))
-        agent.set_learning_rate(learning_rate_at(first, config.episodes, config.learning_rate,
-                                                 config.learning_rate_end))
+    def run_wave(self, learner: DQNLearner, run_seed: int,
+                 persist: Callable[[list[EpisodeRecord], list[np.ndarray]], None]) -> list[EpisodeRecord]:
+        """Fly the next wave of episodes (fewer than N when the budget ends sooner) with
+        `learner`'s actions, let it learn from them, then `persist(records, new replay rows)`;
+        the records come in episode order."""
+        first = learner.episode
+        count = max(1, min(len(self.copies), learner.config.episodes - first))
+        learner.start_episodes()
         wall_start, cpu_start = time.perf_counter(), time.process_time()
-        epsilon_start = trainer.epsilon()
+        epsilon_start = learner.epsilon()
         flights = []
         for k, copy in enumerate(self.copies[:count]):
-            env_seed = episode_seed(trainer.spec.seed, first + k)
+            env_seed = episode_seed(run_seed, first + k)
             obs, reset_infos = copy.reset(env_seed)
             flights.append(_Flight(copy, first + k, env_seed, obs, EpisodeTally(copy.num_drones, reset_infos),
-                                   trainer.n_step_folder()))
-        agent.observe(np.stack([o for f in flights for o in f.obs.values()]))
+                                   learner.n_step_folder()))
+        learner.observe(np.stack([o for f in flights for o in f.obs.values()]))
         losses: list[float] = []
         new_rows: list[np.ndarray] = []
         while flying := [f for f in flights if f.env.live]:
-            self._step(trainer, flying, new_rows)
-            before = trainer.global_step
-            trainer.global_step += len(flying)
-            trainer.learn_due(before, trainer.global_step, losses)
+            self._step(learner, flying, new_rows)
+            learner.after_steps(len(flying), losses)
             for f in flying:
                 if not f.env.live:
-                    f.end = (trainer.global_step, len(losses), time.perf_counter() - wall_start)
-        trainer.episode += count
-        period = config.target_update_period
-        if config.target_update_unit == "episodes" and first // period != trainer.episode // period:
-            agent.align_target()
+                    f.end = (learner.global_step, len(losses), time.perf_counter() - wall_start)
+        learner.end_episodes(count)
 
         records = []
         cpu_share = (time.process_time() - cpu_start) / count  # the wave's CPU, summed over its episodes
@@ -118,15 +109,14 @@ class VectorCollector:
                 episode=f.episode, wall_time_s=wall, epsilon=epsilon_start, global_step=global_step,
                 mean_loss=float(np.mean(losses[:n_losses])) if n_losses else None, env_seed=f.env_seed,
                 cpu_time_s=cpu_share)
-        trainer.persist(records, new_rows)
+        persist(records, new_rows)
         return records
 
     @staticmethod
-    def _step(trainer: Trainer, flying: list[_Flight], new_rows: list[np.ndarray]) -> None:
+    def _step(learner: DQNLearner, flying: list[_Flight], new_rows: list[np.ndarray]) -> None:
         """One env step of every flight in `flying`, actions from one network call."""
-        agent = trainer.agent
         batch = np.stack([f.obs[i] for f in flying for i in f.env.live])
-        actions = iter(agent.act_batch(batch, trainer.epsilon(), trainer.rng))
+        actions = iter(learner.act_batch(batch, learner.epsilon()))
         seen: list[np.ndarray] = []
         for f in flying:
             chosen = {i: int(next(actions)) for i in f.env.live}  # the batch's order
@@ -134,10 +124,10 @@ class VectorCollector:
             for i, action in chosen.items():
                 f.tally.add(i, action, result.rewards[i], result.terminated[i], result.truncated[i],
                             result.infos.get(i, {}))
-            rows = trainer.transition_rows(f.folder, chosen, f.obs, result)
+            rows = learner.transition_rows(f.folder, chosen, f.obs, result)
             if len(rows):
-                trainer.replay.add_rows(rows)
+                learner.remember(rows)
                 new_rows.append(rows)
             seen += [result.obs[i] for i in chosen]
             f.obs.update(result.obs)
-        agent.observe(np.stack(seen))
+        learner.observe(np.stack(seen))
