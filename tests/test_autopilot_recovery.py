@@ -1,5 +1,5 @@
 """`sitl-bridge run --restart-autopilot`: a dead (SIGKILL) or frozen (SIGSTOP) autopilot is
-restarted and the simulation goes on (issue 14 item 8). Real processes, loopback only; the
+restarted and the simulation goes on. Real processes, loopback only; the
 PX4 variants need PX4_BIN. Also: a SIGKILLed owner's temp PX4 run dir is removed later."""
 
 from __future__ import annotations

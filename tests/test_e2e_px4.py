@@ -123,7 +123,7 @@ def _udp_binds(pid: int) -> list[tuple[str, int]]:
 
 
 def test_px4_exposes_only_its_two_documented_links(px4_bin: str, tmp_path) -> None:
-    """Issue 14 item 9: PX4's MAVLink module binds UDP links to 0.0.0.0 (hard-coded); our
+    """PX4's MAVLink module binds UDP links to 0.0.0.0 (hard-coded); our
     px4-rc.mavlink starts only the GCS (18570+i) and API (14580+i) links. Nothing else of
     PX4's listens beyond loopback (README "Network exposure")."""
     import shutil
@@ -144,7 +144,7 @@ def test_px4_exposes_only_its_two_documented_links(px4_bin: str, tmp_path) -> No
 
 
 def test_two_drones_on_px4_through_pettingzoo(px4_bin: str) -> None:
-    """Issue 15 item 2: TE (two_drones_empty) with one PX4 process per drone, one lockstep
+    """TE (two_drones_empty) with one PX4 process per drone, one lockstep
     clock; both act, both episodes start from the same state after a reset."""
     import numpy as np
 

@@ -1,4 +1,4 @@
-"""Multi-drone episode ends (issue 12, TW): `end.after_goal` (a drone at its goal hovers or
+"""Multi-drone episode ends (TW): `end.after_goal` (a drone at its goal hovers or
 lands), `end.conflict_blame` (a crash between drones charged to both, or only to the drone
 that must give way) and `end.min_separation_m` (closer than that is a conflict crash). Real direct-backend flights in the TW-relative scenario."""
 

@@ -1,4 +1,4 @@
-"""Crash semantics (issue 12 item 5): ground contact while flying is a crash, on the real simulator."""
+"""Crash semantics: ground contact while flying is a crash, on the real simulator."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Multi-drone learning inputs (issue 12 items 1-2) on the direct simulator: agent-relative
+"""Multi-drone learning inputs on the direct simulator: agent-relative
 features in the own travel frame, the separation reward, and an explicit priority that follows
 its rule, not the drone id."""
 

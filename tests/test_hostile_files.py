@@ -1,4 +1,4 @@
-"""Hostile scenario files through the real entry point (issue 14 items 6-7): each is a one-line
+"""Hostile scenario files through the real entry point: each is a one-line
 error naming the file (and key), nothing is written outside `--out`, and a failed start leaves
 no run directory."""
 

@@ -1,4 +1,4 @@
-"""Episode resets in the air (issue 15 item 1): the sensors' measured position offset, the
+"""Episode resets in the air: the sensors' measured position offset, the
 continuous teleport of `Lockstep.reset_simulation(continuous=True)`, and (with PX4_BIN) real
 PX4 flying on from one episode into the next with nothing leaking between them."""
 

@@ -1,4 +1,4 @@
-"""Slow learning test (issue 12): TE with the issue-12 inputs (two_drones_empty_relative.yaml)
+"""Slow learning test: TE with the agent-relative inputs (two_drones_empty_relative.yaml)
 learns, within a small budget, a greedy policy that beats every constant-action policy (both
 drones reach their goals without colliding). Excluded from CI's default run (`-m 'not slow'`).
 

@@ -1,4 +1,4 @@
-"""Priority without identity bias (issue 12): who yields follows the scenario's priority rule, not
+"""Priority without identity bias: who yields follows the scenario's priority rule, not
 the drone id. A rule set that yields on `own_priority` (step aside, hover until the other has
 passed) flies the head-on scenario twice, the
 second time with the drones' spawn points (and goals) swapped: the yielding drone changes with

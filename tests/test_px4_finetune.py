@@ -1,4 +1,4 @@
-"""Fine-tuning on real PX4 (issue 15 item 4): `train --autopilot px4 --init-from RUN_DIR`
+"""Fine-tuning on real PX4: `train --autopilot px4 --init-from RUN_DIR`
 continues a `direct`-trained network on PX4, checkpointed and resumable like any run.
 Skipped without PX4_BIN."""
 

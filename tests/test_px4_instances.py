@@ -1,5 +1,5 @@
 """Vehicle instances are claimed with lock files (`autopilot.allocation`), and the pick is the
-claim (issue 15 item 5): processes picking at the same moment never get overlapping instances,
+claim: processes picking at the same moment never get overlapping instances,
 a SIGKILLed holder frees its own, an env holds its claim from its first reset to its close and
 its session adopts it instead of claiming again. Real processes, sockets and sessions; the last
 test needs real PX4 (PX4_BIN)."""

@@ -1,4 +1,4 @@
-"""Seeing the flight (issue 16): rgb_array frames, recorded videos, and the GUI on a real
+"""Seeing the flight: rgb_array frames, recorded videos, and the GUI on a real
 (virtual) display."""
 
 from __future__ import annotations

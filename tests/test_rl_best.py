@@ -1,4 +1,4 @@
-"""A run keeps its best greedy checkpoint as its result (issue 12: OR must not lose what it
+"""A run keeps its best greedy checkpoint as its result (OR must not lose what it
 learned when later training collapses): `best.safetensors` + `best.json`, and run directories
 resolve to it unless the newest is asked for."""
 

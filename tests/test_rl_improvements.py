@@ -1,4 +1,4 @@
-"""DQN improvements (issue 12 item 3): each option's maths against a hand computation, and a run
+"""DQN improvements: each option's maths against a hand computation, and a run
 with all of them on resumes exactly (priorities and normaliser statistics restored)."""
 
 from __future__ import annotations

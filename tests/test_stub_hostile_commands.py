@@ -1,5 +1,5 @@
 """Hostile or absurd MAVLink commands over real UDP: each is answered (ACK or PARAM_VALUE),
-nothing non-finite reaches the controllers, and the vehicle keeps flying (issue 14, items 1-2)."""
+nothing non-finite reaches the controllers, and the vehicle keeps flying."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """`sitl-bridge transfer`: a trained policy evaluated greedily on several backends, same seeds,
-with Wilson 95 % intervals (issue 15 item 3). The px4 column needs PX4_BIN."""
+with Wilson 95 % intervals. The px4 column needs PX4_BIN."""
 
 from __future__ import annotations
 

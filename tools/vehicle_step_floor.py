@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Where a `direct` / `batched` vehicle-step goes, and the floor that pybullet's API sets (issue 11).
+"""Where a `direct` / `batched` vehicle-step goes, and the floor that pybullet's API sets.
 
 Measured in one process, in CPU time (this process's own work, so a shared machine's load
 changes the figures less than wall time), on the bench's scenario (worlds/obstacle.yaml):

@@ -10,7 +10,7 @@ free vehicle instances (full protocol path, `sensors`). It prints per configurat
 * steps/s: env steps per wall second (each step = 1 s of simulated flight by default);
 * real-time factor: simulated seconds flown in steps per wall second spent in `step()`, and
   per CPU second of this process (all its threads: the in-process stub and MAVSDK's
-  included; the figure to compare on a busy machine, issue 5's target is >= 150x for
+  included; the figure to compare on a busy machine, the target is >= 150x for
   `direct`);
 * reset: wall seconds per `reset()` (mean and max) and CPU seconds of this process per reset
   (mean), the in-place episode start included; at least MIN_RESETS of them (extra resets after

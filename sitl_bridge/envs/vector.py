@@ -7,7 +7,7 @@ resets are those of N single envs by construction (tests/test_envs_vector.py che
 no second implementation of the scenario exists; each copy runs its 250 physics steps per
 action in one hot loop (the `direct` backend's fused loop).
 
-Alternatives measured (issue 11; CPU time, 16 copies, steady flight; `tools/vehicle_step_floor.py`
+Alternatives measured (CPU time, 16 copies, steady flight; `tools/vehicle_step_floor.py`
 re-measures the floor): stepping all copies in lockstep, one physics step at a time, cost ~23 us
 per vehicle-step against ~20 us for this design (16 worlds touched per step: cache misses), and
 calling the compiled kernels once per step over all copies (numba typed lists of their state

@@ -66,7 +66,7 @@ class SimRunner:
 
     def hold(self, timeout_s: float | None = None) -> None:
         """Stop at the next step boundary; returns once the simulation is held."""
-        self._raise_error()
+        self.check()
         with self._cond:
             self._steps_left = 0
             self._cond.notify_all()
@@ -77,7 +77,7 @@ class SimRunner:
         with self._cond:
             if not self._cond.wait_for(lambda: self._held, timeout_s):
                 raise TimeoutError(f"simulation still running after {timeout_s} s")
-        self._raise_error()
+        self.check()
 
     @contextlib.contextmanager
     def exclusive(self) -> Iterator[Lockstep]:
@@ -117,7 +117,7 @@ class SimRunner:
 
     # -- internals ----------------------------------------------------------------------------
     def _command(self, steps: int) -> None:
-        self._raise_error()
+        self.check()
         if self._closed:
             raise RuntimeError("SimRunner is closed")
         with self._cond:
@@ -132,7 +132,6 @@ class SimRunner:
             self.error = None
             raise error
 
-    _raise_error = check  # older name, kept for callers
 
     def _loop(self) -> None:
         lockstep = self.lockstep

@@ -97,7 +97,7 @@ class RulesReport:
     rules: list[CandidateRule]
     checks: list[ThesisCheck]
     document: dict
-    """The rules YAML (issue-13 contract)."""
+    """The rules YAML (the format `eval --rules` flies)."""
     fidelity: float | None = None
     """Share of the recorded steps at which the rules YAML picks the network's action."""
     steps: int = 0

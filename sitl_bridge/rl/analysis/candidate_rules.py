@@ -7,7 +7,7 @@ action frame) and its support: the seeds in which it shows in at least half of t
 episodes, and the successful episodes that show it. Competing manoeuvres (left vs right, hover vs
 back off) stay side by side in the candidate list; the YAML, whose first matching rule wins,
 takes the better supported one and says so. The YAML's format is the one `eval --rules` flies
-(the issue-13 contract: name, covers, frame, source, rules of text/when/action/support).
+(name, covers, frame, source, rules of text/when/action/support).
 
 `thesis_checks` maps the thesis's rules 0-5 to checks on the same classifications: recovered
 (held in more than half of the seeds), not recovered, or not applicable to the scenario.
@@ -482,7 +482,7 @@ def fidelity(document: dict, analysis: BehaviourAnalysis, facts: ScenarioFacts,
 
 
 def rules_document(rules: list[CandidateRule], analysis: BehaviourAnalysis, facts: ScenarioFacts) -> dict:
-    """The rules YAML (issue-13 contract) of the candidates marked `in_yaml`; always ends with an
+    """The rules YAML (the format `eval --rules` flies) of the candidates marked `in_yaml`; always ends with an
     unconditional rule (toward the goal when `direct` had no support)."""
     kept = [r for r in rules if r.in_yaml]
     if not any(not r.when for r in kept):

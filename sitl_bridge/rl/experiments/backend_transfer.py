@@ -1,5 +1,5 @@
-"""A trained policy flown greedily on several autopilot backends on the same reset seeds (issue 15
-item 3): the one implementation behind `sitl-bridge transfer` and the report's `backends` section
+"""A trained policy flown greedily on several autopilot backends on the same reset seeds:
+the one implementation behind `sitl-bridge transfer` and the report's `backends` section
 (`rl.experiments.backends_section`).
 
 A `BackendFlight` keeps every drone-episode's outcome, steps, distance flown and actions, so two

@@ -1,5 +1,5 @@
 """The `backends` section of an experiment's results.json (`SECTION_HOOKS`): transfer between
-autopilot backends (issue 15 item 3).
+autopilot backends.
 
 Per scenario with finished runs, the result policy (best checkpoint) of each of its first
 `backend_seeds` seeds (0: all) flies `backend_episodes` greedy episodes on each of `BACKENDS`

@@ -472,7 +472,7 @@ def _trees_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
               f"{settings.get('distill_depth', '?')} (VIPER-weighted, DAgger-resampled, "
               f"{settings.get('distill_iterations', '?')} iterations of {settings.get('distill_episodes', '?')} "
               "episodes; `sitl-bridge distill`). Fidelity: share of the network's actions the tree repeats on the "
-              "states the tree visits; tree and network fly the same evaluation episodes. Target (issue 13): depth "
+              "states the tree visits; tree and network fly the same evaluation episodes. Target of the distillation: depth "
               "<= 6, fidelity >= 95 %, success within 5 points of the network's.", "",
               "| scenario | seed | depth | leaves | fidelity | tree success | network success | tree collision rate "
               "| target met | files |", "|---|---|---|---|---|---|---|---|---|---|"]
