@@ -321,7 +321,7 @@ class FusedSensorStep:
             data, est.state, est.gains, -1 if last is None else last, self._scratch, self._gps
         )
         if not status:
-            return 0
+            return None
         est.last_time_us = time_us
         gps = baro = None
         if status != HANDLED:
