@@ -102,23 +102,32 @@ def thread_syscall(pid: int | str, tid: int | str) -> str | None:
     'running' when it is not blocked, None when the thread is gone. Raises
     `DeliveryUnobservable` when the file cannot be read for another reason (permission)."""
     try:
-        return (_PROC / str(pid) / "task" / str(tid) / "syscall").read_text().split(maxsplit=1)[0]
+        return thread_file(pid, tid, "syscall").read_text().split(maxsplit=1)[0]
     except (FileNotFoundError, ProcessLookupError):
         return None
     except (OSError, IndexError) as exc:
         raise DeliveryUnobservable(f"/proc/{pid}/task/{tid}/syscall: {exc}") from exc
 
 
+def thread_ids(pid: int | str) -> list[str]:
+    """Thread ids of process `pid` ([] when it is gone)."""
+    try:
+        return os.listdir(_PROC / str(pid) / "task")
+    except OSError:
+        return []
+
+
+def thread_file(pid: int | str, tid: int | str, name: str) -> Path:
+    """/proc/<pid>/task/<tid>/<name>."""
+    return _PROC / str(pid) / "task" / str(tid) / name
+
+
 def threads_named(pid: int | str, name: str, *, prefix: bool = False) -> list[str]:
     """Thread ids of process `pid` whose name is `name` (or starts with it)."""
     found = []
-    try:
-        tids = os.listdir(_PROC / str(pid) / "task")
-    except OSError:
-        return found
-    for tid in tids:
+    for tid in thread_ids(pid):
         try:
-            comm = (_PROC / str(pid) / "task" / tid / "comm").read_text().rstrip("\n")
+            comm = thread_file(pid, tid, "comm").read_text().rstrip("\n")
         except OSError:
             continue
         if comm == name or (prefix and comm.startswith(name)):
@@ -249,6 +258,8 @@ __all__ = [
     "register_sender",
     "sender_threads",
     "tag_mavsdk_io_thread",
+    "thread_file",
+    "thread_ids",
     "thread_syscall",
     "threads_named",
     "udp_rx_queue",

@@ -30,6 +30,7 @@ from sitl_bridge.autopilot.px4.in_air import refusal as in_air_refusal
 from sitl_bridge.autopilot.px4.observer import Px4Observation
 from sitl_bridge.autopilot.px4.params import load_param_overrides
 from sitl_bridge.autopilot.px4.process import Px4Autopilot, Px4Config, Px4Died, Px4Error
+from sitl_bridge.autopilot.px4.quiescence import Px4Quiescence
 from sitl_bridge.autopilot.px4.temp_dirs import make_temp_run_dir
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.hil.errors import HilError
@@ -63,6 +64,8 @@ class Px4Fleet:
         # true NED position minus PX4's local estimate, when each became ready
         self._origin_offsets: list[tuple[float, float, float] | None] = [None] * len(self.autopilots)
         self._polled_at_step = -(2**62)  # lockstep step of the last in_air_refusal's reading
+        self.quiescence = Px4Quiescence()
+        self._quiet_lockstep: Any = None  # the lockstep `wait_quiet` observes
 
     def start(self) -> None:
         for autopilot in self.autopilots:
@@ -71,6 +74,16 @@ class Px4Fleet:
     def stop(self) -> None:
         for autopilot in self.autopilots:
             autopilot.stop()
+        self.quiescence.forget()
+
+    def wait_quiet(self, lockstep: Any) -> None:
+        """`Lockstep.after_step` observer: wait until every PX4 answering the lockstep has done
+        the work of the step (`quiescence.py`), so the next step finds it in the same state
+        whatever the machine's load. PX4s still booting (no answer yet) are not waited for."""
+        pids = [autopilot.pid for autopilot, link in zip(self.autopilots, lockstep.links, strict=True)
+                if link.actuators_flowing and autopilot.pid is not None]
+        if pids:
+            self.quiescence.wait(pids)
 
     def check_alive(self) -> None:
         for autopilot in self.autopilots:
@@ -109,6 +122,9 @@ class Px4Fleet:
         took. Raises Px4Died or Px4Error (with console tails) on failure."""
         start = time.monotonic()
         deadline = start + timeout_s
+        if self._quiet_lockstep is not lockstep:  # once per lockstep, restarts included
+            lockstep.after_step.append(lambda: self.wait_quiet(lockstep))
+            self._quiet_lockstep = lockstep
 
         def all_ready() -> bool:
             self.check_alive()
