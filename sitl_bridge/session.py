@@ -195,14 +195,9 @@ class SimSession:
     def restart_autopilots(self) -> None:
         """Held: cold-restart every autopilot (simulation untouched), the cure for `faults()`."""
         runner = self._require_runner()
-        for _ in range(3):  # the runner may still be failing on the dead link while held
-            runner.error = None
-            with contextlib.suppress(HilError):
-                runner.hold()
-                break
-        with runner.exclusive() as lockstep:
+        # the held runner thread may fail on the dead link until the restart takes it over
+        with runner.exclusive(discard_error=True) as lockstep:
             self.autopilots.restart(lockstep)
-            runner.error = None  # the dead link's, from an idle poll that failed meanwhile
 
     def close(self) -> None:
         """Stop the runner, autopilots, links and simulation. Idempotent (partial starts too)."""

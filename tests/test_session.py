@@ -307,6 +307,33 @@ def test_stub_process_sessions_reset_by_restarting_the_stubs() -> None:
         assert session.lockstep.stats.timeouts == 0
 
 
+def test_a_restart_takes_over_a_runner_that_fails_on_the_dead_link(monkeypatch) -> None:
+    """The held runner thread polls the links; the first poll after an autopilot died raises
+    (LinkClosed) and is kept for the controlling thread. A restart begun before that poll ran
+    must not fail on it: here every hold lingers 0.1 s, so the poll always lands between the
+    supervisor's first look and the restart taking the lockstep over."""
+    import os
+    import signal
+
+    instance = pick_mavlink_instances(1)
+    with SimSession("empty", autopilot="stub-process", speed_factor=0, instance_base=instance,
+                    connect_timeout_s=30) as session:
+        session.run_for(0.2)
+        runner, process = session.runner, session.autopilots.processes[0]
+        hold = runner.hold
+
+        def lingering_hold(timeout_s: float | None = None) -> None:
+            hold(timeout_s)
+            time.sleep(0.1)  # widens the race: the runner thread idles (polls) meanwhile
+
+        monkeypatch.setattr(runner, "hold", lingering_hold)
+        os.kill(process.pid, signal.SIGKILL)
+        session.restart_autopilots()
+        assert session.autopilots.processes[0].pid != process.pid and session.links[0].connected
+        session.run_for(0.2)  # the new stub answers in lockstep
+        session.check()
+
+
 @pytest.mark.px4
 def test_px4_sessions_reset_by_restarting_px4(px4_bin: str, px4_claim, tmp_path) -> None:
     from sitl_bridge.client import OffboardClient

@@ -80,10 +80,23 @@ class SimRunner:
         self.check()
 
     @contextlib.contextmanager
-    def exclusive(self) -> Iterator[Lockstep]:
-        """Hold, and keep the thread off the lockstep (no idling either) inside the block."""
-        self.hold()
+    def exclusive(self, *, discard_error: bool = False) -> Iterator[Lockstep]:
+        """Hold, and keep the thread off the lockstep (no idling either) inside the block.
+
+        `discard_error`: drop the thread's error instead of raising it, for a caller that is
+        about to cure it (a restart of a dead autopilot): the held thread keeps polling the
+        dead link until the block starts, so a check before entering cannot be the last."""
+        if not discard_error:
+            self.hold()
+            with self._lock:
+                yield self.lockstep
+            return
+        with self._cond:
+            self._steps_left = 0
+            self._cond.notify_all()
+            self._cond.wait_for(lambda: self._held)
         with self._lock:
+            self.error = None  # under the lock: the thread cannot add one until the block ends
             yield self.lockstep
 
     def serve_until(self, until: Callable[[], bool], timeout_s: float) -> bool:
