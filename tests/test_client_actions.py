@@ -1,4 +1,4 @@
-"""The thesis's action table as NED velocities (no sockets)."""
+"""The thesis's action table as NED velocities, and the client's waits on a simulated clock."""
 
 from __future__ import annotations
 
@@ -115,3 +115,19 @@ def test_wait_until_times_out_in_simulated_time_after_min_wall() -> None:
     with pytest.raises(SimTimeoutError):
         wait_until(lambda: False, clock=clock, timeout_s=0.2, what="never", poll_s=0.04, min_wall_s=0.1)
     assert time.monotonic() - start >= 0.1
+
+
+def test_discovering_the_autopilot_gets_the_commands_wall_time_floor(free_instance: int) -> None:
+    """MAVSDK discovers an autopilot in its own threads, in wall time: a clock that runs the
+    whole timeout at once must not end the discovery before `COMMAND_MIN_WALL_S` of wall time."""
+    import time
+
+    from sitl_bridge.client import OffboardClient, SimTimeoutError
+    from sitl_bridge.ports import api_client_port
+
+    client = OffboardClient(free_instance, clock=_CountingClock(),
+                            url=f"udpin://127.0.0.1:{api_client_port(free_instance)}")  # nobody sends
+    start = time.monotonic()
+    with pytest.raises(SimTimeoutError, match="autopilot heartbeat"):
+        client.connect(timeout_s=0.1)
+    assert time.monotonic() - start >= OffboardClient.COMMAND_MIN_WALL_S

@@ -119,7 +119,8 @@ class OffboardClient:
 
     COMMAND_MIN_WALL_S = 5.0
     """A request is given at least this much wall time: MAVSDK resends a command 3 times
-    0.5 s (wall) apart before reporting a timeout itself, whatever the speed factor."""
+    0.5 s (wall) apart before reporting a timeout itself, whatever the speed factor. The
+    discovery of the autopilot when connecting gets the same floor."""
 
     def __init__(
         self,
@@ -172,8 +173,11 @@ class OffboardClient:
 
         handle = self._mavsdk.first_autopilot_async(-1.0, on_autopilot)
         try:
+            # MAVSDK discovers the autopilot in its own threads, in wall time: on a busy machine
+            # at full speed the timeout's simulated seconds can pass before they get a core
             wait_until(ready.is_set, clock=self.clock, timeout_s=timeout_s,
-                       what=f"vehicle {self.instance}: autopilot heartbeat on {self.url}")
+                       what=f"vehicle {self.instance}: autopilot heartbeat on {self.url}",
+                       min_wall_s=self.COMMAND_MIN_WALL_S)
         finally:
             self._mavsdk.cancel_first_autopilot(handle)
         if not found or found[0] is None:
