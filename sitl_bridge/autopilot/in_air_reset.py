@@ -9,7 +9,7 @@ under a zero velocity setpoint that its client keeps streaming. `reset_in_air` t
    (`AutopilotFleet.estimates`: position, velocity, tilt);
 2. resets the simulation as a session reset does (the layout drawn from the seed, time back
    to 0, sensor noise re-seeded) and places every vehicle `altitude_m` above its spawn in the
-   state its autopilot estimates: its estimated tilt and velocity, the yaw and rotor speeds it
+   state its autopilot estimates: its estimated attitude and velocity, the rotor speeds it
    flew with;
 3. gives every sensor suite the jump as its measured position offset (new offset = old offset
    + old position - new position, `Lockstep.reset_simulation(continuous=True)`), moved onto
@@ -28,9 +28,12 @@ estimate is (which the sensors then confirm), the estimate and the truth agree w
 at the episode's start and the first seconds within 3 cm (`tests/test_in_air_reset.py`). An
 estimate further from the truth than `MAX_TILT_CORRECTION_RAD` or `MAX_VELOCITY_CORRECTION_M_S`
 is not placed (refused).
-The yaw is the truth's because the magnetometer measures it, and rotor speeds carry over
-because a thrust step would show in the accelerometer: a vehicle keeps the yaw it flew with,
-so an episode whose spawn yaw differs by more than `MAX_YAW_ERROR_RAD` is refused. The
+The yaw is the estimate's too (within `MAX_YAW_CORRECTION_RAD` of the truth, which the
+magnetometer then confirms): placed at the true yaw, the estimator's yaw error of the moment
+carried into the next episode, whose first second turned by a different amount each time.
+Rotor speeds carry over because a thrust step would show in the accelerometer. A vehicle keeps
+the heading it flew with (an env's offboard setpoints hold the spawn heading), so an episode
+whose spawn yaw differs from it by more than `MAX_YAW_ERROR_RAD` is refused. The
 measured offset is bounded (`sensors.suite.MAX_POSITION_OFFSET_M`, see there why); past it
 the reset is refused too.
 A refusal returns the reason, and the caller resets another way (restarts the autopilots).
@@ -48,8 +51,9 @@ from sitl_bridge.frames import quat_from_euler_t, quat_ned_frd_to_enu_flu_t, wra
 MAX_YAW_ERROR_RAD = math.radians(5.0)
 """Largest difference between the yaw a vehicle keeps and its spawn yaw."""
 MAX_TILT_CORRECTION_RAD = math.radians(2.0)
+MAX_YAW_CORRECTION_RAD = math.radians(3.0)
 MAX_VELOCITY_CORRECTION_M_S = 0.15
-"""The most the placement may differ from the true tilt and velocity (PX4 after a manoeuvre:
+"""The most the placement may differ from the true tilt, yaw and velocity (PX4 after a manoeuvre:
 ~0.3 deg, <= 0.09 m/s); a larger estimate error is not placed (a report read out of date, or an
 estimator that is not following): refused, the caller restarts."""
 
@@ -63,6 +67,8 @@ class Estimate:
     velocity_ned_m_s: tuple[float, float, float]
     roll_pitch_rad: tuple[float, float]
     """Estimated roll and pitch (NED/FRD Euler angles)."""
+    yaw_rad: float | None = None
+    """Estimated yaw (NED/FRD Euler angle); None: not reported, the truth's is kept."""
 
 
 def reset_in_air(fleet: Any, lockstep: Any, seed: int | None, sensor_seeds: Sequence[int | None] | None,
@@ -84,7 +90,8 @@ def reset_in_air(fleet: Any, lockstep: Any, seed: int | None, sensor_seeds: Sequ
         if reason:
             return f"vehicle {k}: {reason}"
     rotors = [tuple(float(w) for w in state.rotor_speeds_rad_s) for state in states]
-    yaws_ned = [float(state.euler_ned_frd_rad[2]) for state in states]
+    yaws_ned = [float(state.euler_ned_frd_rad[2]) if estimate.yaw_rad is None else float(estimate.yaw_rad)
+                for estimate, state in zip(estimates, states, strict=True)]
     yaws = [yaw_ned_to_enu(yaw) for yaw in yaws_ned]
 
     def place(sim: Any) -> None:
@@ -114,6 +121,10 @@ def _correction_refusal(estimate: Estimate, state: Any) -> str:
     tilt = math.hypot(estimate.roll_pitch_rad[0] - roll, estimate.roll_pitch_rad[1] - pitch)
     if not tilt <= MAX_TILT_CORRECTION_RAD:
         return f"estimated tilt {math.degrees(tilt):.1f} deg off the truth"
+    if estimate.yaw_rad is not None:
+        yaw_off = abs(wrap_pi(float(estimate.yaw_rad) - float(state.euler_ned_frd_rad[2])))
+        if not yaw_off <= MAX_YAW_CORRECTION_RAD:
+            return f"estimated yaw {math.degrees(yaw_off):.1f} deg off the truth"
     east, north, up = (float(v) for v in state.velocity_enu_m_s)
     off = math.dist(estimate.velocity_ned_m_s, (north, east, -up))
     if not off <= MAX_VELOCITY_CORRECTION_M_S:

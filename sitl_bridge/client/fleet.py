@@ -103,8 +103,12 @@ class Fleet:
                       f"hovering at {altitude_m:g} +- {tolerance_m:g} m after takeoff", timeout_s)
         return [c.relative_altitude_m() for c in self.clients]
 
-    def start_offboard(self, timeout_s: float = 5.0) -> None:
-        self._finish_all([c.request_offboard() for c in self.clients], "start offboard")
+    def start_offboard(self, timeout_s: float = 5.0, yaws_deg: Sequence[float] | None = None) -> None:
+        """Every vehicle in OFFBOARD at zero velocity, holding its heading in `yaws_deg` (NED,
+        degrees; default: each one's heading as telemetry reports it now)."""
+        yaws = list(yaws_deg) if yaws_deg is not None else [None] * len(self.clients)
+        self._finish_all([c.request_offboard(yaw) for c, yaw in zip(self.clients, yaws, strict=True)],
+                         "start offboard")
         self.wait_all(lambda c: c.flight_mode() == "OFFBOARD", "flight mode OFFBOARD", timeout_s)
 
     def fly(self, velocities_ned_m_s: Sequence[Sequence[float] | np.ndarray], duration_s: float) -> None:

@@ -397,16 +397,22 @@ class OffboardClient:
         """The last velocity setpoint sent (NED, m/s)."""
         return self._velocity_ned_m_s.copy()
 
-    def request_offboard(self) -> Future[Any]:
-        """Send a zero-velocity setpoint (required before start), then request OFFBOARD."""
-        heading = float(self.telemetry.heading().heading_deg)
-        self._yaw_deg = heading if math.isfinite(heading) else 0.0
+    def request_offboard(self, yaw_deg: float | None = None) -> Future[Any]:
+        """Send a zero-velocity setpoint (required before start), then request OFFBOARD.
+        The setpoints hold heading `yaw_deg` (NED, degrees from north); without it, the
+        heading telemetry reports now (read in wall time: where it matters which report that
+        was, as in an env's episodes, give the heading)."""
+        if yaw_deg is None:
+            heading = float(self.telemetry.heading().heading_deg)
+            yaw_deg = heading if math.isfinite(heading) else 0.0
+        self._yaw_deg = float(yaw_deg)
         self.set_velocity_ned((0.0, 0.0, 0.0))
         return self.submit(self._require(self._offboard).start)
 
-    def start_offboard(self, timeout_s: float = 5.0) -> None:
-        """Enter OFFBOARD holding position (zero velocity) and wait until the mode is reported."""
-        self.finish(self.request_offboard(), "start offboard")
+    def start_offboard(self, timeout_s: float = 5.0, yaw_deg: float | None = None) -> None:
+        """Enter OFFBOARD holding position (zero velocity) at heading `yaw_deg` (see
+        `request_offboard`) and wait until the mode is reported."""
+        self.finish(self.request_offboard(yaw_deg), "start offboard")
         self.wait_until(lambda: self.flight_mode() == "OFFBOARD", "flight mode OFFBOARD", timeout_s)
 
     def fly_velocity_ned(self, velocity_ned_m_s: Sequence[float] | np.ndarray,

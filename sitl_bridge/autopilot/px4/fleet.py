@@ -213,7 +213,7 @@ class Px4Fleet:
             error = tuple(o - g for o, g in zip(self._offset(lockstep, index, obs), origin, strict=True))
             estimates.append(Estimate(position_error_ned_m=error,  # type: ignore[arg-type]
                                       velocity_ned_m_s=tuple(obs.velocity_ned_m_s),  # type: ignore[arg-type]
-                                      roll_pitch_rad=obs.attitude_rad[:2]))
+                                      roll_pitch_rad=obs.attitude_rad[:2], yaw_rad=obs.attitude_rad[2]))
         return estimates
 
     def reset_in_place(self, lockstep: Any, reset: Callable[[], None] | None = None, *,

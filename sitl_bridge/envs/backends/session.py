@@ -26,7 +26,10 @@ Reset between episodes, as the kind's fleet says (`AutopilotFleet.resets_in_plac
   the truth. Where PX4 is not in a clean flying state (disarmed, failsafe, landed, crashed,
   tumbling, estimate off, offset past its bound), or at the first episode, it falls back to:
 * a restart (`px4`: a cold boot is the only reset that clears all of PX4's state): the
-  session is restarted, autopilot processes, links and MAVSDK clients, on the same instances.
+  session is restarted, autopilot processes, links and MAVSDK clients, on the same instances;
+  after the take-off the first episode is placed in the air as an in-air reset places it, so
+  where a take-off ended and how far PX4's estimate was off do not vary the episode's start.
+The offboard setpoints hold each vehicle's spawn heading.
 
 Collisions come from the session's collision log (`SimSession.take_collisions`), each
 physics step's exactly once; a new setpoint reaches in-process stubs before the first step
@@ -36,6 +39,8 @@ of its span (`SimSession.deliver_pending_commands`), as in `direct`.
 from __future__ import annotations
 
 import contextlib
+import logging
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -47,12 +52,19 @@ from sitl_bridge.autopilot.registry import env_kind
 from sitl_bridge.client import Fleet, OffboardClientError
 from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, CollisionFlags, Snapshot
 from sitl_bridge.envs.options import EnvOptions
+from sitl_bridge.frames import yaw_enu_to_ned
 from sitl_bridge.hil import HilError
 from sitl_bridge.sensors import sensor_seed
 from sitl_bridge.sensors.lidar import Lidar
 from sitl_bridge.session import SessionError, SimSession
 from sitl_bridge.world import World
 from sitl_bridge.world.clock import nearest_whole_steps_s
+
+log = logging.getLogger(__name__)
+
+FIRST_PLACEMENT_TRIES = 2
+"""Starts (boot, take-off, placement in the air) of a kind that resets in the air before the
+first episode's placement counts as failed."""
 
 
 class SessionBackend:
@@ -94,20 +106,34 @@ class SessionBackend:
         snapshot = self.fly_on(seed)
         if snapshot is not None:
             return snapshot
-        if self.session is not None and not self.resets_in_place:
-            self._stop()  # e.g. PX4: restart rather than teleport its estimator
-        if self.session is None:
-            self._start(seed)
-        session = self._session()
-        if self.resets_in_place:
-            # Also right after a start: connecting let time run, and every episode must begin
-            # from the same state as `direct`'s (rebooted autopilot, freshly seeded sensors).
-            session.reset(seed)
-            assert self.lidar is not None
-            self.lidar.reset()
-        # Otherwise the autopilots just started on the episode's layout (drawn from `seed`).
-        self._episode_start_us = session.time_us
-        self._hover_start()
+        for attempt in range(FIRST_PLACEMENT_TRIES):
+            if self.session is not None and not self.resets_in_place:
+                self._stop()  # e.g. PX4: restart rather than teleport its estimator
+            if self.session is None:
+                self._start(seed)
+            session = self._session()
+            if self.resets_in_place:
+                # Also right after a start: connecting let time run, and every episode must begin
+                # from the same state as `direct`'s (rebooted autopilot, freshly seeded sensors).
+                session.reset(seed)
+                assert self.lidar is not None
+                self.lidar.reset()
+            # Otherwise the autopilots just started on the episode's layout (drawn from `seed`).
+            self._episode_start_us = session.time_us
+            self._hover_start()
+            if not self.resets_in_air:
+                break
+            # The first episode after a boot starts placed as every in-air episode does (where
+            # the take-off ended, and the truth against PX4's estimate, vary from boot to boot).
+            refusal = self._place_in_air(seed)
+            if not refusal:
+                self._episode_begins()
+                return self._snapshot()
+            log.warning("%s: the first episode could not be placed in the air (%s)%s", self.name, refusal,
+                        "; starting again" if attempt + 1 < FIRST_PLACEMENT_TRIES else "")
+        else:
+            raise BackendError(f"{self.name}: the first episode after a start could not be placed "
+                               f"in the air: {refusal}")
         session.take_collisions()  # the episode start's do not count
         self._collisions.clear()
         return self._snapshot()
@@ -209,36 +235,49 @@ class SessionBackend:
                 waited += poll_s
         fleet.takeoff(self.start_altitude_m, timeout_s=start.timeout_s,
                       tolerance_m=start.takeoff_tolerance_m)
-        fleet.start_offboard()
+        # each holds its spawn heading: telemetry's heading is read in wall time, and which
+        # report that is varies with the machine's load
+        fleet.start_offboard(yaws_deg=self._spawn_headings_deg())
         session.run_for(nearest_whole_steps_s(start.settle_s, step_us))
+
+    def _spawn_headings_deg(self) -> list[float]:
+        """Every vehicle's spawn yaw as a heading (NED, degrees from north)."""
+        sim = self._session().sim
+        assert sim is not None
+        return [math.degrees(yaw_enu_to_ned(yaw)) for yaw in sim.layout.spawn_yaws_rad]
 
     def _reset_in_air(self, seed: int) -> bool:
         """The next episode in the air (module docstring); False: reset another way."""
+        refusal = self._place_in_air(seed)
+        self.last_in_air_refusal = refusal
+        if refusal:
+            return False
+        self.in_air_resets += 1
+        self._episode_begins()
+        return True
+
+    def _place_in_air(self, seed: int) -> str:
+        """Stop, then re-spawn the world for episode `seed` with every vehicle in the air where
+        its autopilot estimates it (`reset_in_air`). Returns '' when done, else why not."""
         session, start = self._session(), EPISODE_START
-        step_us = session.step_us
         try:
             moving = self._stop_in_air()
             if moving:
-                self.last_in_air_refusal = f"still moving or turning after the stop: {moving}"
-                return False
+                return f"still moving or turning after the stop: {moving}"
             seeds = [sensor_seed(seed, k) for k in range(self.num_drones)]  # as SimSession.reset
             with session.exclusive():
-                refusal = reset_in_air(session.autopilots, session.lockstep, seed, seeds, self.start_altitude_m,
-                                       nearest_whole_steps_s(start.settle_s, step_us))
-            if refusal:
-                self.last_in_air_refusal = refusal
-                return False
+                return reset_in_air(session.autopilots, session.lockstep, seed, seeds, self.start_altitude_m,
+                                    nearest_whole_steps_s(start.settle_s, session.step_us))
         except (SessionError, OffboardClientError, HilError) as exc:  # a dead autopilot: restart it
-            self.last_in_air_refusal = f"{type(exc).__name__}: {exc}"
-            return False
-        self.last_in_air_refusal = ""
-        self.in_air_resets += 1
+            return f"{type(exc).__name__}: {exc}"
+
+    def _episode_begins(self) -> None:
+        """After an in-air placement: the episode's clock, lidar and collisions start afresh."""
         assert self.lidar is not None
         self.lidar.reset()
         self._episode_start_us = 0  # simulated time restarted at 0 with the re-spawn
-        session.take_collisions()  # the episode start's do not count
+        self._session().take_collisions()  # the episode start's do not count
         self._collisions.clear()
-        return True
 
     def _stop_in_air(self) -> str:
         """Zero velocity setpoints, held until every vehicle's autopilot estimates it slower
