@@ -1,6 +1,6 @@
-"""Episode resets in the air: the sensors' measured position offset, the
-continuous teleport of `Lockstep.reset_simulation(continuous=True)`, and (with PX4_BIN) real
-PX4 flying on from one episode into the next with nothing leaking between them."""
+"""Episode resets in the air: the sensors' measured position offset, the continuous teleport
+of `Lockstep.reset_simulation(continuous=True)`, and (with PX4_BIN) real PX4 flying on from one
+episode into the next with nothing leaking between them, or booting again after a crash."""
 
 from __future__ import annotations
 
@@ -164,3 +164,31 @@ def test_px4_flies_on_into_the_next_episode_with_nothing_leaking(px4_bin):
     bound = np.maximum(2.0 * reference, LEAK_FLOOR)
     for before, after in zip(traces, traces[1:], strict=False):
         assert np.all(_difference(before, after) <= bound), (_difference(before, after), reference)
+
+
+@pytest.mark.px4
+@pytest.mark.timeout(300)
+def test_px4_boots_again_after_a_crash_into_the_ground(px4_bin):
+    """A vehicle flown into the ground cannot fly on: the next reset boots a new PX4, and
+    that episode starts in the air at the start altitude like any other, and flies."""
+    from sitl_bridge.envs.backends.session import SessionBackend
+    from sitl_bridge.envs.options import EnvOptions
+
+    world = load_world(WORLDS / "empty.yaml")
+    backend = SessionBackend(world, EnvOptions.of(autopilot="px4", px4_bin=px4_bin, speed_factor=0.0),
+                             start_altitude_m=2.5)
+    try:
+        backend.reset(0)
+        pid = backend.session.autopilots.px4.autopilots[0].pid
+        crashed = backend.fly([np.array([0.0, 0.0, 2.0])], 3.0).states[0]  # NED: down into the ground
+        assert crashed.position_enu_m[2] < 0.3, crashed.position_enu_m
+        state = backend.reset(1).states[0]
+        assert backend.last_in_air_refusal, "the PX4 on the ground should not have flown on"
+        assert backend.in_air_resets == 0
+        assert backend.session.autopilots.px4.autopilots[0].pid != pid  # a new PX4 process
+        assert np.allclose(state.position_enu_m, (0.0, 0.0, 2.56), atol=0.1)
+        assert math.hypot(*state.velocity_enu_m_s) < 0.1
+        flown = backend.fly([np.array([1.0, 0.0, 0.0])], 1.0).states[0]  # NED north: ENU y
+        assert flown.position_enu_m[1] - state.position_enu_m[1] > 0.3
+    finally:
+        backend.close()
