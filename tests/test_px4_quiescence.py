@@ -51,7 +51,8 @@ def test_a_spinning_thread_is_waited_for_until_the_bound_and_a_stopped_one_not()
         assert quiet.stats.capped == 1
         child.send_signal(signal.SIGSTOP)
         deadline = time.monotonic() + 10.0  # the stop takes effect once the child is scheduled
-        while Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "T":
+        while any(stat.read_text().rsplit(")", 1)[1].split()[0] != "T"
+                  for stat in Path(f"/proc/{child.pid}/task").glob("*/stat")):  # every thread stopped
             assert time.monotonic() < deadline
             time.sleep(0.01)
         assert quiet.wait([child.pid])
@@ -70,9 +71,9 @@ def test_a_thread_that_finishes_its_work_is_seen_asleep() -> None:
         quiet = Px4Quiescence(max_wait_s=30.0)
         assert quiet.wait([child.pid])  # asleep in readline
         waits = quiet.stats.waits
+        started = time.monotonic()  # before the write: the child's 0.1 s start after it
         child.stdin.write("go\n")
         child.stdin.flush()
-        started = time.monotonic()
         assert quiet.wait([child.pid])
         assert time.monotonic() - started >= 0.1
         assert quiet.stats.waits == waits + 1 and quiet.stats.capped == 0
