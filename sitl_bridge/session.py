@@ -193,7 +193,8 @@ class SimSession:
             raise SessionError(f"the simulation stopped: {error}") from error
 
     def restart_autopilots(self) -> None:
-        """Held: cold-restart every autopilot (simulation untouched), the cure for `faults()`."""
+        """Hold (a running simulation too) and cold-restart every autopilot (simulation
+        untouched), the cure for `faults()`; returns held."""
         runner = self._require_runner()
         # the held runner thread may fail on the dead link until the restart takes it over
         with runner.exclusive(discard_error=True) as lockstep:

@@ -206,8 +206,7 @@ def _restart(session: SimSession, fault: AutopilotFault, count: int, tty: bool) 
     print(f"{chr(10) if tty else ''}[{session.time_s:8.2f} s] autopilot of vehicle {fault.instance} "
           f"{fault.reason} ({first_line}); restarting it (restart {count})", file=sys.stderr, flush=True)
     started = time.monotonic()
-    if session.running:
-        session.hold()
+    # holds first, dropping what the dead link raises meanwhile (a hold of its own could fail on it)
     session.restart_autopilots()
     print(f"[{session.time_s:8.2f} s] autopilot of vehicle {fault.instance} ready again after "
           f"{time.monotonic() - started:.1f} s wall", file=sys.stderr, flush=True)
