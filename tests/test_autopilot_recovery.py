@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import queue
+import random
 import signal
 import subprocess
 import sys
@@ -30,7 +31,9 @@ def _free_px4_instance() -> int:
     """A PX4 instance in 0..9 free now, for a child `sitl-bridge run --instance-base N`, which
     claims exactly it (a lock cannot be handed on; a run that took it meanwhile makes the
     child fail with InstancesBusy, never share it)."""
-    with claim_free_instances(1, last=PX4_LAST_OWN_API_INSTANCE) as claim:
+    # from a random start: another run picking at the same moment likely takes another one
+    first = random.randint(0, PX4_LAST_OWN_API_INSTANCE)
+    with claim_free_instances(1, first=first, last=PX4_LAST_OWN_API_INSTANCE) as claim:
         return claim.base
 
 

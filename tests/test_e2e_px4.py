@@ -4,6 +4,7 @@ Skipped without PX4_BIN (the `px4_bin` fixture)."""
 
 from __future__ import annotations
 
+import random
 from pathlib import Path
 
 import pytest
@@ -18,21 +19,27 @@ pytestmark = pytest.mark.px4
 
 
 def _free_px4_instance() -> int:
-    """PX4 sends its API link to 14540+i only for i <= 9 (px4-rc.mavlink)."""
-    from conftest import instance_ports_free
+    """A PX4 instance in 0..9 (PX4 sends its API link to 14540+i only for i <= 9:
+    px4-rc.mavlink) free now, for a child `sitl-bridge run`, which claims it itself (a claim
+    cannot be handed on); the tests in this process hold theirs (`px4_claim`)."""
+    from sitl_bridge.autopilot.allocation import InstancesBusy, claim_free_instances
+    from sitl_bridge.ports import PX4_LAST_OWN_API_INSTANCE
 
-    for instance in range(9, -1, -1):
-        if instance_ports_free(instance):
-            return instance
-    pytest.skip("no free PX4 instance in 0..9")
+    try:
+        # from a random start: another run picking at the same moment likely takes another one
+        first = random.randint(0, PX4_LAST_OWN_API_INSTANCE)
+        with claim_free_instances(1, first=first, last=PX4_LAST_OWN_API_INSTANCE) as claim:
+            return claim.base
+    except InstancesBusy as exc:
+        pytest.skip(str(exc))
 
 
 @pytest.mark.parametrize("speed_factor", [1.0, 10.0])
-def test_px4_flies_the_offboard_demo(px4_bin: str, tmp_path, speed_factor: float) -> None:
+def test_px4_flies_the_offboard_demo(px4_bin: str, px4_claim, tmp_path, speed_factor: float) -> None:
     """Real time (what a user watching the demo runs) and ten times faster (what training
     runs): MAVSDK streams setpoints and heartbeats in wall time, PX4 measures in simulated time."""
-    instance = _free_px4_instance()
-    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=speed_factor, instance_base=instance,
+    instance = px4_claim.base
+    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=speed_factor, instance_base=px4_claim,
                     run_dir=tmp_path) as session:
         with Fleet.for_session(session) as fleet:
             client = fleet[0]
@@ -125,18 +132,18 @@ def _udp_binds(pid: int) -> list[tuple[str, int]]:
     return binds
 
 
-def test_px4_exposes_only_its_two_documented_links(px4_bin: str, tmp_path) -> None:
+def test_px4_exposes_only_its_two_documented_links(px4_bin: str, px4_claim, tmp_path) -> None:
     """PX4's MAVLink module binds UDP links to 0.0.0.0 (hard-coded); our
     px4-rc.mavlink starts only the GCS (18570+i) and API (14580+i) links. Nothing else of
-    PX4's listens beyond loopback (README "Network exposure")."""
+    PX4's listens beyond loopback (docs/autopilots.md, "Network exposure")."""
     import shutil
 
     if shutil.which("ss") is None:
         pytest.skip("ss (iproute2) not installed")
     from sitl_bridge.ports import vehicle_ports
 
-    instance = _free_px4_instance()
-    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=0, instance_base=instance,
+    instance = px4_claim.base
+    with SimSession("empty", autopilot="px4", px4_bin=px4_bin, speed_factor=0, instance_base=px4_claim,
                     run_dir=tmp_path / "run") as session:
         session.run_for(1.0)
         pid = session.autopilots.px4.autopilots[0].pid
