@@ -90,6 +90,12 @@ class _Lines:
                 return line
         raise AssertionError(f"{text!r} not printed within {timeout_s} s:\n{''.join(self.all)}")
 
+    def everything(self) -> str:
+        """All the output read so far, also what no `wait_for` took yet."""
+        while not self._queue.empty():
+            self.all.append(self._queue.get())
+        return "".join(self.all)
+
 
 def _kill_and_freeze(extra: list[str], marker: str, instance: int, boot_s: float) -> None:
     run = subprocess.Popen(
@@ -99,7 +105,10 @@ def _kill_and_freeze(extra: list[str], marker: str, instance: int, boot_s: float
     lines = _Lines(run)
     try:
         lines.wait_for("t=", boot_s + 15)  # a status line: started and simulating
-        first = _autopilot_pid(run.pid, marker)
+        try:
+            first = _autopilot_pid(run.pid, marker)
+        except AssertionError as exc:
+            raise AssertionError(f"{exc} (run's exit status {run.poll()}); its output:\n{lines.everything()}") from None
         time.sleep(1.0)
         os.kill(first, signal.SIGKILL)
         restart = lines.wait_for("restarting it (restart 1)", 30)
