@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_env_autopilot_argument(parser)
     parser.add_argument("--standby", action="store_true",
                         help="px4: keep a standby PX4 booted to take over crashed episodes (faster "
-                             "with a free core; README, Episode resets with real PX4)")
+                             "with a free core; docs/autopilots.md, Standby)")
     parser.add_argument("--seed", type=int, default=0, help="run seed (network, exploration, episodes)")
     parser.add_argument("--out", default="runs", help="folder for the run directory (default runs/)")
     parser.add_argument("--resume", metavar="RUN_DIR", help="continue this run from its newest good checkpoint")

@@ -70,7 +70,7 @@ class EarlyEndWatch:
                 f"the workspace within {self.early_steps} steps: the agent is learning to end its episodes early"
                 f"{self._why()}. What it lacks is a first goal: exploration that travels (train: explore_repeat_max, "
                 "ez-greedy) or shaping that leads round obstacles (closer_to_goal: {along: path}) may give it one, "
-                "or another seed; see the README on scenarios of your own")
+                "or another seed; see docs/scenarios.md on scenarios of your own")
 
     def _why(self) -> str:
         per_step, crash = self.rewards.get("per_step"), self.rewards.get("crash")
