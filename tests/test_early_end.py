@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from sitl_bridge.envs.scenario import load_scenario
+from sitl_bridge.rl.common.episode_files import log_exists
 from sitl_bridge.rl.common.episode_log import EpisodeRecord, read_records
 from sitl_bridge.rl.training.early_end import EarlyEndWatch, flying_on_value
 from sitl_bridge.rl.training.run_dir import run_scenario
@@ -68,7 +69,7 @@ def test_on_the_committed_two_blocks_runs_it_names_exactly_the_seeds_that_never_
         pytest.skip("the committed two_blocks runs are not here")
     warned, failed = set(), set()
     for done in jobs:
-        (run,) = [d for d in done.parent.iterdir() if (d / "episodes.jsonl").is_file()]
+        (run,) = [d for d in done.parent.iterdir() if log_exists(d / "episodes.jsonl")]
         gamma = yaml.safe_load((run / "config.yaml").read_text())["gamma"]
         watch = EarlyEndWatch.of(load_scenario(run_scenario(run)), gamma)
         seed = int(done.parent.name[4:])
