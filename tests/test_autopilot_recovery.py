@@ -78,7 +78,8 @@ class _Lines:
         for line in process.stdout:
             self._queue.put(line)
 
-    def wait_for(self, text: str, timeout_s: float) -> str:
+    def wait_for(self, text: str, timeout_s: float, *, at_start: bool = False) -> str:
+        """The first line containing `text` (`at_start`: beginning with it)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             try:
@@ -86,7 +87,7 @@ class _Lines:
             except queue.Empty:
                 continue
             self.all.append(line)
-            if text in line:
+            if line.startswith(text) if at_start else text in line:
                 return line
         raise AssertionError(f"{text!r} not printed within {timeout_s} s:\n{''.join(self.all)}")
 
@@ -104,7 +105,7 @@ def _kill_and_freeze(extra: list[str], marker: str, instance: int, boot_s: float
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = _Lines(run)
     try:
-        lines.wait_for("t=", boot_s + 15)  # a status line: started and simulating
+        lines.wait_for("t=", boot_s + 15, at_start=True)  # a status line: started and simulating
         try:
             first = _autopilot_pid(run.pid, marker)
         except AssertionError as exc:
@@ -141,7 +142,7 @@ def test_without_the_flag_a_killed_stub_process_ends_run(free_instance: int) -> 
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = _Lines(run)
     try:
-        lines.wait_for("t=", 60)
+        lines.wait_for("t=", 60, at_start=True)
         os.kill(_autopilot_pid(run.pid, "sitl_bridge stub"), signal.SIGKILL)
         assert run.wait(30) == 1
     finally:
@@ -183,7 +184,7 @@ def test_sigkill_of_run_with_px4_leaves_no_temp_dir_after_the_next_start(px4_bin
          "--instance-base", str(instance)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = _Lines(run)
     try:
-        lines.wait_for("t=", 120)
+        lines.wait_for("t=", 120, at_start=True)
         owned = [p for p in Path(tempfile.gettempdir()).glob(PREFIX + "*")
                  if (p / OWNER_FILE).is_file() and (p / OWNER_FILE).read_text().split()[0] == str(run.pid)]
         assert len(owned) == 1
