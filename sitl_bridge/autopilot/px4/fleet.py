@@ -126,13 +126,14 @@ class Px4Fleet:
             lockstep.after_step.append(lambda: self.wait_quiet(lockstep))
             self._quiet_lockstep = lockstep
 
+        def tails() -> str:
+            return "\n".join(f"--- PX4 instance {a.instance} ({a.observation}):\n{a.tail(15)}"
+                             for a in self.autopilots)
+
         def all_ready() -> bool:
             self.check_alive()
             if time.monotonic() > deadline:
-                tails = "\n".join(
-                    f"--- PX4 instance {a.instance} ({a.observation}):\n{a.tail(15)}" for a in self.autopilots
-                )
-                raise Px4Error(f"PX4 not ready after {timeout_s} s wall:\n{tails}")
+                raise Px4Error(f"PX4 not ready after {timeout_s} s wall:\n{tails()}")
             return all(a.ready and a.observation.position_ned_m is not None for a in self.autopilots)
 
         try:
@@ -140,7 +141,7 @@ class Px4Fleet:
         except HilError as exc:
             raise self.explain(exc) from exc
         if not ready:
-            raise Px4Error(f"PX4 not ready after {max_sim_s} s of simulated time")
+            raise Px4Error(f"PX4 not ready after {max_sim_s} s of simulated time:\n{tails()}")
         for index, autopilot in enumerate(self.autopilots):
             self._origin_offsets[index] = self._offset(lockstep, index, autopilot.observation)
         self.last_ready_wall_s = time.monotonic() - start
