@@ -168,7 +168,7 @@ def _describe_number(positive: bool, non_negative: bool, minimum: float | None, 
     return " ".join(parts)
 
 
-_SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_SafeLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 """libyaml's safe loader where PyYAML was built with it (~30x faster on a large file), else
 the pure-Python one; both build plain data only."""
 
@@ -204,7 +204,7 @@ def load_yaml(path: str | Path) -> Node:
     if depth > MAX_YAML_DEPTH:
         raise ConfigError(f"{source}: nested {depth} levels deep (at most {MAX_YAML_DEPTH}); not a scenario")
     try:
-        data = yaml.load(text, Loader=_SAFE_LOADER)  # noqa: S506 (a safe loader: plain data only)
+        data = yaml.load(text, Loader=_SafeLoader)  # noqa: S506 (a safe loader: plain data only)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

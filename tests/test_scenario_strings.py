@@ -31,7 +31,7 @@ def _world_file(tmp_path: Path, **world_fields) -> Path:
 
 def test_yaml_goes_through_libyaml_where_pyyaml_has_it() -> None:
     expected = yaml.CSafeLoader if yaml.__with_libyaml__ else yaml.SafeLoader
-    assert errors._SAFE_LOADER is expected
+    assert errors._SafeLoader is expected
 
 
 def test_a_ten_megabyte_world_name_is_refused_in_one_line_within_seconds(tmp_path: Path) -> None:
