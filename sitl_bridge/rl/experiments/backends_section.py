@@ -22,7 +22,6 @@ while that seed's checkpoint, the scenario and the settings are the same.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -85,7 +84,7 @@ def _flights(stem: str, backend: str, seeds: list[dict[str, Any]], world: Path, 
     """Each seed's flight on `backend`: cached ones while their checkpoint is the same, the rest flown."""
     from sitl_bridge.rl.learner.policy import policy_from_checkpoint
 
-    key = report_cache.cache_key(backend=backend, world=hashlib.sha256(world.read_bytes()).hexdigest(),
+    key = report_cache.cache_key(backend=backend, world=report_cache.world_digest(world),
                                  episodes=settings.backend_episodes, episode_seed=EVAL_SEED_BASE)
     cache = out / BACKENDS_DIR / f"{stem}_{backend}.json"
     stored: dict[str, Any] = report_cache.load(cache, key) or {}

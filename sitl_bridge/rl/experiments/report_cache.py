@@ -5,6 +5,7 @@ part of an experiment only flies the scenarios whose runs changed."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,15 @@ def checkpoint_digest(run_dir: str | Path) -> str:
 
     _, tensors, state = resolve_checkpoint(run_dir)
     return network_digest(online_tensors(tensors), state["network"])
+
+
+def world_digest(path: str | Path) -> str:
+    """sha256 of a scenario file's parsed content (its YAML data as canonical JSON): a comment or
+    layout edit keeps the report's cached flights, a changed value flies them again."""
+    from sitl_bridge.errors import load_yaml
+
+    data = load_yaml(path).value
+    return hashlib.sha256(json.dumps(data, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def cache_key(**parts: Any) -> dict[str, Any]:

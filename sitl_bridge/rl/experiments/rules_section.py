@@ -26,7 +26,6 @@ Scenarios without finished runs are `{"status": "not run"}`; results are cached 
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -82,10 +81,6 @@ def simpler_scenarios(results: dict[str, Any]) -> dict[str, list[str]]:
 def scenario_world(results: dict[str, Any], stem: str) -> Path:
     """The scenario file of `stem` (results' `world`: relative to the working directory or absolute)."""
     return Path(results[stem]["world"]).resolve()
-
-
-def _digest(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _analyse(stem: str, results: dict[str, Any], out: Path, simpler: list[str], settings: ReportSettings,
@@ -144,7 +139,7 @@ def _scenario_entry(stem: str, results: dict[str, Any], out: Path, simpler: list
     seeds = results[stem]["seeds"]
     key = report_cache.cache_key(
         checkpoints={str(s["seed"]): report_cache.checkpoint_digest(out / s["run_dir"]) for s in seeds},
-        worlds={s: _digest(scenario_world(results, s)) for s in [stem, *simpler]},
+        worlds={s: report_cache.world_digest(scenario_world(results, s)) for s in [stem, *simpler]},
         behaviour_episodes=settings.behaviour_episodes, verify_episodes=settings.verify_episodes,
         episode_seed=EVAL_SEED_BASE, analysis=ANALYSIS_VERSION)
     cache = out / RULES_DIR / f"{stem}.json"

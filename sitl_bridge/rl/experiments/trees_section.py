@@ -16,7 +16,6 @@ are cached (`DIR/trees/<stem>.json`) while the checkpoint, scenario and settings
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -83,7 +82,7 @@ def _tree_entry(stem: str, results: dict[str, Any], out: Path, settings: ReportS
     world = Path(results[stem]["world"]).resolve()
     key = report_cache.cache_key(
         checkpoint=report_cache.checkpoint_digest(out / seed["run_dir"]), seed=seed["seed"],
-        world=hashlib.sha256(world.read_bytes()).hexdigest(), depth=settings.distill_depth,
+        world=report_cache.world_digest(world), depth=settings.distill_depth,
         iterations=settings.distill_iterations, episodes=settings.distill_episodes, episode_seed=EVAL_SEED_BASE,
         text=TEXT_FORMAT)
     cache = out / TREES_DIR / f"{stem}.json"
