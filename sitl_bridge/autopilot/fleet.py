@@ -124,6 +124,8 @@ class AutopilotFleet(ABC):
     resets_in_air: ClassVar[bool] = False
     """The next episode may start in the air with the autopilots flying on, not rebooted
     (`autopilot.in_air_reset.reset_in_air`, asking `in_air_refusal` before and after)."""
+    places_in_air: ClassVar[bool] = False
+    """`place_in_air` can start an episode with every vehicle hovering, no take-off flown."""
     last_instance: ClassVar[int] = MAX_INSTANCE
     """The highest vehicle instance an env of this kind claims (`autopilot.allocation`; px4:
     9, the last with an API port of its own)."""
@@ -199,6 +201,12 @@ class AutopilotFleet(ABC):
         """Next episode, held: `reset_simulation()` (physics and sensors) and every autopilot
         rebooted. Default: a restart (`restart`); in-process kinds reboot in place."""
         self.restart(lockstep, reset_simulation)
+
+    def place_in_air(self, lockstep: Lockstep, altitude_m: float) -> None:
+        """Held, right after `reset`: every vehicle hovering `altitude_m` above its spawn, its
+        autopilot in the state a take-off there ends in (armed, in the air, holding), without
+        flying it. Kinds with `places_in_air` do (`autopilot.stub.in_air_start`)."""
+        raise NotImplementedError(f"{type(self).__name__} does not place vehicles in the air")
 
     def in_air_refusal(self, lockstep: Lockstep) -> str:
         """Held: why the autopilots cannot fly on into the next episode ('' when they can:

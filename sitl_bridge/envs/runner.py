@@ -87,7 +87,8 @@ class EpisodeRunner:
     def open(cls, scenario: Scenario, options: EnvOptions, backend: Backend | None = None) -> EpisodeRunner:
         """A runner on `backend`, or on the backend `options` names (built for `scenario`)."""
         if backend is None:
-            backend = make_backend(scenario.world, options, start_altitude_m=scenario.task.start_altitude_m)
+            backend = make_backend(scenario.world, options, start_altitude_m=scenario.task.start_altitude_m,
+                                   takeoff=scenario.task.start_with_takeoff)
         return cls(scenario, backend)
 
     @property

@@ -7,6 +7,7 @@ how it is rewarded, when an episode ends, what an action means). Example::
     task:
       max_steps: 35                 # step limit -> truncated
       start_altitude_m: 2.5         # each episode starts hovering this high above the spawn
+      start: {takeoff: false}       # true: take off to it every episode (default: placed there)
       action:
         speed_m_s: 1.0              # every moving action flies this speed ...
         duration_s: 1.0             # ... for this many simulated seconds
@@ -147,6 +148,10 @@ class TaskConfig:
     """Camera of `render_mode="rgb_array"` (and recorded videos)."""
     priority: str = "lower_coordinate_yields"
     """Right-of-way rule behind the `own_priority`/`other_priority` inputs (`envs/priority.py`)."""
+    start_with_takeoff: bool = False
+    """`start: {takeoff: true}`: every episode flies its take-off to the start altitude (the
+    thesis's start); default: placed hovering there with no take-off flown (`direct`, `stub`;
+    `px4` after its first episode, see `envs.backends.base`)."""
 
     @property
     def observation_size(self) -> int:
@@ -213,12 +218,15 @@ def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
     """Parse a `task:` node (its path should be `task`) for a world with the given limits."""
     if node.value is None:
         raise ConfigError(f"{node.source}: task: required section is missing")
-    node.reject_unknown({"max_steps", "start_altitude_m", "action", "observation", "reward", "end",
+    node.reject_unknown({"max_steps", "start_altitude_m", "start", "action", "observation", "reward", "end",
                          "render", "priority"})
+    start = node.get("start", {})
+    start.reject_unknown({"takeoff"})
     observation = parse_observation(node.get("observation"), limits)
     return TaskConfig(
         max_steps=node.get("max_steps").integer(minimum=1, maximum=100_000),
         start_altitude_m=node.get("start_altitude_m", 2.5).number(minimum=0.3, maximum=100.0),
+        start_with_takeoff=start.get("takeoff", False).boolean(),
         action=_parse_action(node.get("action", {}), limits.num_drones),
         observation=tuple(observation),
         rewards=tuple(parse_rewards(node.get("reward"))),

@@ -62,10 +62,10 @@ from .estimator import (
 from .mixer import QuadGeometry, QuadXMixer, mix
 from .modes import CommandResult, LandedState, system_id_for
 from .params import ParamTable
-from .vec import quat_to_euler
+from .vec import quat_to_euler, quat_yaw
 
 if TYPE_CHECKING:
-    from sitl_bridge.sensors import SensorFrame
+    from sitl_bridge.sensors import GroundTruth, SensorFrame
 
 _NAN = float("nan")
 _WARM = False  # the kernels are loaded in this process (StubAutopilot.warm_up)
@@ -251,6 +251,30 @@ class StubAutopilot:
         self.control[_Q_SP] = 1.0
         self._last_time_us = None
         self._position_last_us = None
+
+    def place_in_air(self, spawn: GroundTruth, placed: GroundTruth, hover_rotor_speed_rad_s: float,
+                     time_us: int) -> None:
+        """Right after `reset`, with the vehicle just placed hovering at `placed` (level, at
+        rest, its rotors at `hover_rotor_speed_rad_s`): the state a take-off from `spawn` ends
+        in, without flying it (an episode that starts in the air). The estimate converged at
+        the placed state (`SensorEstimator.place` / `GroundTruthEstimator.place`), armed and
+        in the air in AUTO.LOITER holding it, home at the spawn (`Commander.place_in_air`), the
+        position loop's integrators at hover thrust and the motors at hover
+        (`PositionControl.settle_at_hover`), the rate loop's at rest. `time_us`: the clock of
+        the next update (the simulation's time for `direct`; the HIL link's for `stub`)."""
+        e = self.estimator.place(spawn, placed, time_us)
+        origin = e.origin
+        assert origin is not None
+        self.commander.place_in_air(e, Home(*origin, (0.0, 0.0, 0.0), quat_yaw(e.quaternion_ned_frd)))
+        self.refresh_gains()
+        collective = self.mixer.collective_for(hover_rotor_speed_rad_s)
+        self.position_control.settle_at_hover(collective)
+        self.rate_control.reset()
+        c = self.control
+        c[_THRUST] = collective
+        c[_Q_SP:_Q_SP + 4] = body_z_to_attitude((0.0, 0.0, 1.0), quat_yaw(e.quaternion_ned_frd))
+        c[_OUTPUTS:_OUTPUTS + 4] = self.mixer.mix(collective, (0.0, 0.0, 0.0))
+        self._command = None  # the outputs are in `control`
 
     # --- controller state as attributes ------------------------------------------------------
     @property

@@ -240,6 +240,23 @@ class Commander:
         self._text(6, "Armed by external command")
         return CommandResult.ACCEPTED
 
+    def place_in_air(self, e: Estimate, home: Home) -> None:
+        """After a reboot: the state in which a take-off from `home` ends with the vehicle at
+        the estimate `e` (an episode that starts in the air, `StubAutopilot.place_in_air`):
+        armed, flown, in the air, AUTO.LOITER holding `e`'s position and heading."""
+        self.advance_clock(e.time_us)
+        self.estimate = e
+        self.home = home
+        self.armed = True
+        self._arm_time_us = self.time_us
+        self._flown_since_arming = True
+        self.landed = False
+        self.ground_contact = self.maybe_landed = False
+        self._contact_since_us = self._maybe_since_us = None
+        self._ground_z_m = home.position_ned_m[2]
+        self._takeoff_target = e.position_ned_m
+        self._enter(HOLD)
+
     def disarm(self, force: bool = False) -> CommandResult:
         """Disarm; refused in the air unless forced (PX4 param2 = 21196)."""
         if not self.armed:

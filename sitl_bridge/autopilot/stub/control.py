@@ -239,6 +239,16 @@ class PositionControl:
         """Clear the integrators (on the ground, on mode changes that need it)."""
         self.state[_VEL_INT:_VEL_INT + 3] = 0.0
 
+    def settle_at_hover(self, collective: float) -> None:
+        """The integrators as hovering has settled them: at rest, level, on target (no error to
+        act on), the vertical integral makes `_acceleration_control`'s thrust `collective`
+        (what holds the vehicle up, where MPC_THR_HOVER is only the feed-forward's guess)."""
+        hover = self.params["MPC_THR_HOVER"]
+        self.state[:] = 0.0
+        self.state[_VEL_INT + 2] = clamp(GRAVITY_M_S2 * (hover - collective) / max(hover, 1e-3),
+                                         -GRAVITY_M_S2, GRAVITY_M_S2)
+        self.state[_THR_SP + 2] = -collective
+
     def update(self, dt_s: float, sp: Setpoint, position_ned_m: Vec3, velocity_ned_m_s: Vec3,
                accel_ned_m_s2: Vec3) -> Vec3:
         """Thrust setpoint in NED, normalised (|thrust| = fraction of full collective thrust)."""

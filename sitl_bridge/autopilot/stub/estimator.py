@@ -142,12 +142,26 @@ class GroundTruthEstimator:
         # the numpy views would cost more to build than this whole update
         q, rates, vel, acc, (px, py, pz) = t.raw
         if not self.has_origin:
-            e.origin = (t.lat_e7 * 1e-7, t.lon_e7 * 1e-7, t.alt_mm * 1e-3)  # geodetic only once
-            self.state[:] = (px, py, pz, math.radians(EARTH_RADIUS_M),
-                             math.radians(EARTH_RADIUS_M * math.cos(math.radians(e.origin[0]))), *e.origin)
-            self._origin = tuple(self.state.tolist())
-            self.has_origin = True
+            self._set_origin(t)
         return self.finish(relative_estimate(self._origin, q, rates, vel, acc, px, py, pz), frame.time_us, frame.gps)
+
+    def place(self, spawn: GroundTruth, placed: GroundTruth, time_us: int) -> Estimate:
+        """After `reset`: the estimate as it stands after a take-off from `spawn` (the truth
+        there, which the first frame would have made the origin) to `placed` (an episode that
+        starts in the air, `StubAutopilot.place_in_air`)."""
+        self._set_origin(spawn)
+        q, rates, vel, acc, (px, py, pz) = placed.raw
+        return self.finish(relative_estimate(self._origin, q, rates, vel, acc, px, py, pz), time_us)
+
+    def _set_origin(self, t: GroundTruth) -> None:
+        """The truth `t` (its geodetic and its NED position) becomes the estimate's origin."""
+        e = self.estimate
+        px, py, pz = t.raw[4]
+        e.origin = (t.lat_e7 * 1e-7, t.lon_e7 * 1e-7, t.alt_mm * 1e-3)  # geodetic only once
+        self.state[:] = (px, py, pz, math.radians(EARTH_RADIUS_M),
+                         math.radians(EARTH_RADIUS_M * math.cos(math.radians(e.origin[0]))), *e.origin)
+        self._origin = tuple(self.state.tolist())
+        self.has_origin = True
 
     def finish(self, values: tuple, time_us: int, gps=None) -> Estimate:  # noqa: ANN001
         """The estimate from `relative_estimate`'s values (and the frame's GPS, if any)."""
@@ -397,6 +411,31 @@ class SensorEstimator:
         and velocity filter. Learnt states (gyro and accelerometer biases, baro offset) start
         over: the vehicle may have moved, and a reset re-draws the sensor noise."""
         self.__init__(self.WARM_ALIGN_S if align_s is None else align_s)  # type: ignore[misc]
+
+    def place(self, spawn: GroundTruth, placed: GroundTruth, time_us: int) -> Estimate:
+        """After `reset`: the converged estimate of a vehicle that took off from `spawn` and
+        hovers at `placed` (an episode that starts in the air, `StubAutopilot.place_in_air`):
+        aligned, the origin where the first GPS fix on the ground would have put it (the
+        spawn's geodetic position, without the fix's noise), attitude, position and velocity at
+        the truth, no learnt bias (the simulated sensors have none), the declination as
+        `_gps_update` looks it up. The baro's zero is taken from the next baro sample (as at
+        the first one), tied to this height."""
+        s = self.state
+        lat, lon, alt = spawn.lat_e7 * 1e-7, spawn.lon_e7 * 1e-7, spawn.alt_mm * 1e-3
+        q, rates, vel, _, position = placed.raw
+        self.estimate.origin = (lat, lon, alt)
+        s[_HAS_ORIGIN], s[_HAS_Q] = 1.0, 1.0
+        s[_ORIGIN:_ORIGIN + 3] = (lat, lon, alt)
+        s[_LON_RADIUS] = EARTH_RADIUS_M * math.cos(math.radians(lat))
+        n, east, _ = magnetic_field_ned_gauss(GeoHome(lat_deg=lat, lon_deg=lon, alt_m=alt))
+        s[_DECLINATION] = math.atan2(east, n)
+        s[_Q:_Q + 4] = q
+        s[_RATES:_RATES + 3] = rates
+        s[_POS:_POS + 3] = [p - p0 for p, p0 in zip(position, spawn.raw[4], strict=True)]
+        s[_VEL:_VEL + 3] = vel
+        s[_GPS_ACCEL:_GPS_ACCEL + 3] = 0.0  # hovering: the expected specific force is gravity's
+        s[_ALIGN_UNTIL_US] = time_us  # aligned from now on
+        return self.refresh(time_us)
 
     def step_dt(self, time_us: int) -> float:
         """Seconds since the previous sample (0 for the first); records `time_us`."""

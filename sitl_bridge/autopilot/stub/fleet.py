@@ -25,6 +25,7 @@ from sitl_bridge.autopilot.modes import mode_name
 
 from .autopilot import StubAutopilot
 from .fence import Fence
+from .in_air_start import place_hovering
 from .params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, ParamTable
 from .vehicle import StubVehicle
 
@@ -60,6 +61,7 @@ class InProcessStubFleet(AutopilotFleet):
     place (`StubVehicle.reset`): the HIL connection and the API sockets stay up."""
 
     supports_ground_truth = True
+    places_in_air = True
 
     def __init__(self, config: FleetConfig) -> None:
         super().__init__(config)
@@ -92,6 +94,10 @@ class InProcessStubFleet(AutopilotFleet):
         reset_simulation()
         for vehicle in self.vehicles:
             vehicle.reset()
+
+    def place_in_air(self, lockstep: Lockstep, altitude_m: float) -> None:
+        stubs = self.stubs
+        place_hovering(lockstep.sim, lockstep.sensors, stubs, altitude_m, [stub.time_us for stub in stubs])
 
     def restart(self, lockstep: Lockstep, reset_simulation: Callable[[], None] | None = None) -> None:
         # A cold boot: new stubs on the same ports (the old sockets are closed first).

@@ -128,6 +128,13 @@ class QuadXMixer:
         c[_OMEGA_MAX], c[_U_SCALE], c[_U_OFFSET] = g.omega_max_rad_s, g.omega_scale_rad_s, g.omega_offset_rad_s
         self.state = np.zeros(1)
 
+    def collective_for(self, rotor_speed_rad_s: float) -> float:
+        """The collective thrust (no torque) whose outputs spin every rotor at `rotor_speed_rad_s`
+        (`mix`'s rotor map inverted)."""
+        c = self.constants
+        per_rotor = (rotor_speed_rad_s / c[_OMEGA_MAX]) ** 2
+        return float(per_rotor / np.mean(c[_THRUST_COL:_THRUST_COL + 4]))
+
     @property
     def saturated(self) -> bool:
         """Whether the last mix had to desaturate."""

@@ -66,6 +66,7 @@ from sitl_bridge.autopilot.stub.estimator import (
     position_valid,
     relative_estimate,
 )
+from sitl_bridge.autopilot.stub.in_air_start import place_hovering
 from sitl_bridge.autopilot.stub.modes import CommandResult, LandedState
 from sitl_bridge.autopilot.stub.params import ParamTable
 from sitl_bridge.envs.backends.base import EPISODE_START, BackendError, CollisionFlags, Snapshot
@@ -183,13 +184,15 @@ class DirectBackend:
 
     name = "direct"
 
-    def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float) -> None:
+    def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float, takeoff: bool = False) -> None:
         self.estimator = options.estimator
         ground_truth = options.ground_truth
         seed = options.first_seed
         self.world = world
         self.num_drones = world.num_vehicles
         self.start_altitude_m = float(start_altitude_m)
+        self.takeoff = takeoff
+        """Every episode starts with a take-off (False: placed in the air, `in_air_start`)."""
         self.sim = Simulation(world, seed=seed, step_us=None, gui=options.uses_gui,
                               visual=options.render_mode is not None)  # world's step, as SimSession
         self.lidar = Lidar(self.sim, [v.lidar for v in world.vehicles])
@@ -219,9 +222,15 @@ class DirectBackend:
             suite.reset(sensor_seed(seed, i))
         for autopilot in self.autopilots:
             autopilot.reset()
+        if not self.takeoff:
+            place_hovering(self.sim, self.sensors, self.autopilots, self.start_altitude_m,
+                           [self.sim.time_us] * self.num_drones)
         self._lanes = [self._lane(i) for i in range(self.num_drones)]  # the controllers are new objects
         self._velocities = [(0.0, 0.0, 0.0)] * self.num_drones
-        self._hover_start()
+        if self.takeoff:
+            self._hover_start()
+        else:
+            self._offboard_and_settle()
         self._collisions.clear()
         return self._snapshot()
 
@@ -411,11 +420,15 @@ class DirectBackend:
         if not self._takeoff_done():
             raise BackendError(f"direct: takeoff to {self.start_altitude_m:g} m not done within "
                                f"{start.timeout_s:g} s of simulated time")
+        self._offboard_and_settle()
+
+    def _offboard_and_settle(self) -> None:
+        """Hovering in HOLD (after the take-off, or placed there): offboard at zero velocity, settle."""
         self.set_velocities([(0.0, 0.0, 0.0)] * self.num_drones)
         for ap in self.autopilots:
             if ap.set_mode(MainMode.OFFBOARD, 0) is not CommandResult.ACCEPTED:
                 raise BackendError(f"direct: vehicle {ap.instance} refused offboard")
-        self.run_steps(self.steps_for(start.settle_s, exact=False))
+        self.run_steps(self.steps_for(EPISODE_START.settle_s, exact=False))
 
     def _takeoff_done(self) -> bool:
         """The MAVSDK client's test: in the air, back in HOLD, within tolerance of the altitude."""

@@ -70,12 +70,16 @@ first episode's placement counts as failed."""
 class SessionBackend:
     """A `SimSession` with a MAVSDK `Fleet`, flown through the Backend API."""
 
-    def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float) -> None:
+    def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float, takeoff: bool = False) -> None:
         self.estimator = options.estimator
         self.name = options.autopilot
         fleet_class = env_kind(options.autopilot).fleet_class()
         self.resets_in_place = fleet_class.resets_in_place
-        self.resets_in_air = fleet_class.resets_in_air
+        self.takeoff = takeoff
+        """Every episode flies its take-off (a kind that resets in the air restarts for it)."""
+        self.resets_in_air = fleet_class.resets_in_air and not takeoff
+        self.places_in_air = fleet_class.places_in_air and not takeoff
+        """Episodes start placed in the air, no take-off flown (`AutopilotFleet.place_in_air`)."""
         self.in_air_resets = 0
         """Episodes started in the air (`reset_in_air`); the others were restarts or in place."""
         self.last_in_air_refusal = ""
@@ -120,7 +124,12 @@ class SessionBackend:
                 self.lidar.reset()
             # Otherwise the autopilots just started on the episode's layout (drawn from `seed`).
             self._episode_start_us = session.time_us
-            self._hover_start()
+            if self.places_in_air:
+                with session.exclusive():
+                    session.autopilots.place_in_air(session.lockstep, self.start_altitude_m)
+                self._offboard_and_settle()
+            else:
+                self._hover_start()
             if not self.resets_in_air:
                 break
             # The first episode after a boot starts placed as every in-air episode does (where
@@ -235,10 +244,15 @@ class SessionBackend:
                 waited += poll_s
         fleet.takeoff(self.start_altitude_m, timeout_s=start.timeout_s,
                       tolerance_m=start.takeoff_tolerance_m)
+        self._offboard_and_settle()
+
+    def _offboard_and_settle(self) -> None:
+        """Hovering in HOLD (after the take-off, or placed there): offboard at zero velocity, settle."""
+        session, fleet = self._session(), self._fleet()
         # each holds its spawn heading: telemetry's heading is read in wall time, and which
         # report that is varies with the machine's load
         fleet.start_offboard(yaws_deg=self._spawn_headings_deg())
-        session.run_for(nearest_whole_steps_s(start.settle_s, step_us))
+        session.run_for(nearest_whole_steps_s(EPISODE_START.settle_s, session.step_us))
 
     def _spawn_headings_deg(self) -> list[float]:
         """Every vehicle's spawn yaw as a heading (NED, degrees from north)."""

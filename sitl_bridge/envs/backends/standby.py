@@ -52,14 +52,14 @@ wall time: a held PX4 sends nothing, and after ~3 s without its heartbeat MAVSDK
 link's remote address and logs "Sending message failed" for every setpoint it streams."""
 
 
-def _serve(conn: Connection, world: World, options: EnvOptions, start_altitude_m: float) -> None:
+def _serve(conn: Connection, world: World, options: EnvOptions, start_altitude_m: float, takeoff: bool) -> None:
     """A worker: one `SessionBackend`, driven by (method, args) messages until "close" or
     until the parent's end of the pipe closes. Replies ("ok", result, counters) or
     ("error", message, counters). After "boot" (a restart as the standby) it keeps warm
     until the next message."""
     from sitl_bridge.envs.backends.session import SessionBackend
 
-    backend = SessionBackend(world, options, start_altitude_m=start_altitude_m)
+    backend = SessionBackend(world, options, start_altitude_m=start_altitude_m, takeoff=takeoff)
     hover = [np.zeros(3)] * backend.num_drones
     standby = False
     try:
@@ -91,8 +91,8 @@ def _serve(conn: Connection, world: World, options: EnvOptions, start_altitude_m
 def main() -> None:
     """`python -m sitl_bridge.envs.backends.standby FD`: a worker on the inherited socket FD."""
     conn = Connection(int(sys.argv[1]))
-    world, options, start_altitude_m = conn.recv()
-    _serve(conn, world, options, start_altitude_m)
+    world, options, start_altitude_m, takeoff = conn.recv()
+    _serve(conn, world, options, start_altitude_m, takeoff)
 
 
 class _Worker:
@@ -101,13 +101,13 @@ class _Worker:
     A plain subprocess, not `multiprocessing`: its spawn would re-import the user's main
     script in the worker (and fork is unsafe in a process with threads: MAVSDK, torch)."""
 
-    def __init__(self, world: World, options: EnvOptions, start_altitude_m: float) -> None:
+    def __init__(self, world: World, options: EnvOptions, start_altitude_m: float, takeoff: bool) -> None:
         ours, theirs = socket.socketpair()
         self.process = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno())],
                                         pass_fds=(theirs.fileno(),))
         theirs.close()
         self.conn = Connection(ours.detach())
-        self.conn.send((world, options, start_altitude_m))
+        self.conn.send((world, options, start_altitude_m, takeoff))
         self.pending = False
         self.in_air_resets = 0
         self.last_in_air_refusal = ""
@@ -161,7 +161,8 @@ class _Worker:
 class StandbyBackend:
     """`SessionBackend` episodes with a standby copy booted ahead (module docstring)."""
 
-    def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float) -> None:
+    def __init__(self, world: World, options: EnvOptions, *, start_altitude_m: float,
+                 takeoff: bool = False) -> None:
         self.name = options.autopilot
         self.num_drones = world.num_vehicles
         self.handovers = 0
@@ -170,7 +171,7 @@ class StandbyBackend:
         """Episodes started by a restart in the foreground (the first included)."""
         self.last_standby_refusal = ""
         """Why the standby could not take over at the last handover it was asked for."""
-        self._spec = (world, replace(options, standby=False), float(start_altitude_m))
+        self._spec = (world, replace(options, standby=False), float(start_altitude_m), bool(takeoff))
         self._active: _Worker | None = None
         self._standby: _Worker | None = None
         self.last_in_air_refusal = ""
