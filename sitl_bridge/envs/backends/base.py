@@ -9,15 +9,18 @@ simulated step, so `direct` and `stub` agree on the same seed and actions:
    (randomised per the world, from `seed`) on the ground, autopilots rebooted (`direct`/`stub`:
    `StubAutopilot.reset`, a warm reboot with the short alignment; `px4`: restarted), sensor
    noise re-seeded (`px4` after its first episode: in the air instead, PX4 flying on, see
-   `backends.session`, then only the settle below); then the episode start, observed rather
-   than timed: arm as soon as
+   `backends.session`, then only the settle below). Then, `direct` and `stub` by default
+   (`takeoff=False`): every vehicle placed hovering at the start altitude, its stub in the
+   state a take-off ends in (`autopilot.stub.in_air_start`), no take-off flown, then offboard
+   and the settle below. With `takeoff=True` (the scenario's `task.start: {takeoff: true}`)
+   and for `px4`'s first episode, the episode start, observed rather than timed: arm as soon as
    the autopilot accepts (retried every `EPISODE_START.arm_poll_s`), take off to the task's
    start altitude (PX4's AUTO.TAKEOFF with MIS_TAKEOFF_ALT), wait until in the air, in HOLD
    and within `takeoff_tolerance_m` of it, switch to offboard with a zero-velocity setpoint and
    let it settle for `settle_s`; then held.
 
-Backends are built as `Backend(world, options, start_altitude_m=...)` with the env's whole
-`EnvOptions`; the registry (`sitl_bridge.autopilot.registry`) says which class serves which
+Backends are built as `Backend(world, options, start_altitude_m=..., takeoff=...)` with the
+env's whole `EnvOptions`; the registry (`sitl_bridge.autopilot.registry`) says which class serves which
 `autopilot=` kind.
 2. `fly(velocities_ned_m_s, duration_s)`: each vehicle's setpoint is set before the first step
    of the span and held for exactly `duration_s` simulated seconds; then held.

@@ -37,7 +37,9 @@ the same order, bit for bit.
 Reset: in place, the same steps as `SimSession.reset` for in-process stubs: the simulation
 re-spawned from the episode's seed (time 0), sensor noise re-seeded (`sensor_seed`), every
 autopilot rebooted with `StubAutopilot.reset` (the short warm alignment; the autopilots are
-built once, with the backend).
+built once, with the backend). Then, unless `takeoff`, every vehicle is placed hovering at the start
+altitude with its autopilot settled there (`autopilot.stub.in_air_start`), and only offboard
+and the settle are flown.
 """
 
 from __future__ import annotations

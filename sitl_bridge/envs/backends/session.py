@@ -10,6 +10,11 @@ Episode start (see `base`): the same sequence as `direct`, through MAVSDK: arm (
 `EPISODE_START.arm_poll_s` while the autopilot denies it), takeoff to the start altitude, wait
 until hovering there in HOLD, offboard with a zero-velocity setpoint, settle.
 
+In-process stubs (`AutopilotFleet.places_in_air`) skip the arming and the take-off unless the
+scenario asks for them (`takeoff`): after the in-place reset, `place_in_air` sets every vehicle
+hovering at the start altitude and its stub in the state a take-off ends in, then MAVSDK
+starts offboard and the settle runs, as after a take-off.
+
 Reset between episodes, as the kind's fleet says (`AutopilotFleet.resets_in_place`):
 * in place (`stub`), on the same ports and MAVSDK connections: `SimSession.reset(seed)`
   re-spawns the simulation with the episode's seed (simulated time back to 0, as `direct`),
