@@ -101,7 +101,7 @@ class _Worker:
     A plain subprocess, not `multiprocessing`: its spawn would re-import the user's main
     script in the worker (and fork is unsafe in a process with threads: MAVSDK, torch)."""
 
-    def __init__(self, world: World, options: EnvOptions, start_altitude_m: float, takeoff: bool) -> None:
+    def __init__(self, world: World, options: EnvOptions, start_altitude_m: float, takeoff: bool = False) -> None:
         ours, theirs = socket.socketpair()
         self.process = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno())],
                                         pass_fds=(theirs.fileno(),))
