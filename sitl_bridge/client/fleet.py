@@ -111,14 +111,22 @@ class Fleet:
                          "start offboard")
         self.wait_all(lambda c: c.flight_mode() == "OFFBOARD", "flight mode OFFBOARD", timeout_s)
 
-    def fly(self, velocities_ned_m_s: Sequence[Sequence[float] | np.ndarray], duration_s: float) -> None:
-        """Give each vehicle its velocity, then advance exactly `duration_s` simulated seconds."""
+    def fly(self, velocities_ned_m_s: Sequence[Sequence[float] | np.ndarray], duration_s: float,
+            yaws_deg: Sequence[float] | None = None) -> None:
+        """Give each vehicle its velocity (and heading `yaws_deg`, NED degrees, when given; else
+        each keeps the one it holds), then advance exactly `duration_s` simulated seconds."""
         if len(velocities_ned_m_s) != len(self.clients):
             raise OffboardClientError(
                 f"fly: expected {len(self.clients)} velocities, got {len(velocities_ned_m_s)}")
-        for client, velocity in zip(self.clients, velocities_ned_m_s, strict=True):
-            client.set_velocity_ned(velocity)
-        self.clock.deliver_setpoints({c.instance: c.commanded_velocity_ned_m_s for c in self.clients})
+        yaws = list(yaws_deg) if yaws_deg is not None else [None] * len(self.clients)
+        if len(yaws) != len(self.clients):
+            raise OffboardClientError(f"fly: expected {len(self.clients)} yaws, got {len(yaws)}")
+        for client, velocity, yaw in zip(self.clients, velocities_ned_m_s, yaws, strict=True):
+            client.set_velocity_ned(velocity, yaw)
+        # with headings, each delivery is (north, east, down, yaw rad): a new heading at an
+        # unchanged velocity must arrive too before time resumes
+        self.clock.deliver_setpoints({c.instance: c.commanded_setpoint_ned(with_yaw=yaws_deg is not None)
+                                      for c in self.clients})
         self.clock.run_for(duration_s)
 
     def fly_actions(self, actions: Sequence[int], *, goals_ned_m: Sequence[Sequence[float] | None] | None = None,

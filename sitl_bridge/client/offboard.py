@@ -397,6 +397,13 @@ class OffboardClient:
         """The last velocity setpoint sent (NED, m/s)."""
         return self._velocity_ned_m_s.copy()
 
+    def commanded_setpoint_ned(self, *, with_yaw: bool = False) -> np.ndarray:
+        """The last velocity setpoint sent (NED, m/s), with its heading (NED yaw, rad) appended
+        when `with_yaw` (what a delivery check compares)."""
+        if not with_yaw:
+            return self.commanded_velocity_ned_m_s
+        return np.append(self._velocity_ned_m_s, math.radians(self._yaw_deg))
+
     def request_offboard(self, yaw_deg: float | None = None) -> Future[Any]:
         """Send a zero-velocity setpoint (required before start), then request OFFBOARD.
         The setpoints hold heading `yaw_deg` (NED, degrees from north); without it, the

@@ -1,4 +1,5 @@
-"""From a discrete action code (the thesis's table) to one drone's NED velocity setpoint.
+"""From an action to one drone's NED velocity setpoint: a discrete code (the thesis's table) or
+a continuous velocity vector (`task.action.type: velocity`).
 
 The base meaning of each code comes from `sitl_bridge.client.actions` (the one definition shared
 with the MAVSDK client); here the scenario's action settings are applied on top:
@@ -8,6 +9,25 @@ with the MAVSDK client); here the scenario's action settings are applied on top:
   (3 = forward toward the goal, 2 = back, 0 = right, 1 = left), so a head-on pair is symmetric;
 * action 6 flies toward the goal at the action speed, slowed on the last step so that it stops
   at the goal rather than overshooting it.
+
+Continuous velocity actions (`type: velocity`) are `Box(-1, 1, (3,))` float32 vectors, or
+`(4,)` with `yaw: rate`: `(x, y, z[, yaw rate])`. NaN or inf raises a one-line `ValueError`
+(never a NaN setpoint); each component is first clipped to [-1, 1] (what SB3 does with a
+Gaussian policy's samples), then the vector `(x, y, z)` is scaled by `max_speed_m_s` with its
+NORM capped at 1: a vector inside the unit ball flies `max_speed_m_s * |a|` in its direction, one
+beyond it (a corner of the box) flies `max_speed_m_s` in its direction, so the speed never
+exceeds `max_speed_m_s` whatever the direction (clipping per component would let a diagonal fly
+1.7 times faster). The axes per `frame` (z is always up):
+
+* `world`: x east, y north (ENU);
+* `goal`: x right, y forward of the horizontal start-goal direction (as the discrete goal frame;
+  a head-on pair is symmetric);
+* `body`: x right, y forward of the drone's heading now (its true yaw at the decision).
+
+With `yaw: rate` the 4th component times `max_yaw_rate_deg_s` is a yaw rate, positive
+counter-clockwise seen from above (turning left). It is flown the way MAVSDK's `VelocityNedYaw`
+can fly it on every backend: each decision moves the held heading setpoint by rate x duration.
+With `yaw: hold` the heading setpoint stays as it was (the spawn heading).
 """
 
 from __future__ import annotations
@@ -15,10 +35,57 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from gymnasium import spaces
 
 from sitl_bridge.client.actions import NUM_ACTIONS, Action, action_velocity_ned
 from sitl_bridge.envs.task import ActionConfig
-from sitl_bridge.frames import enu_to_ned
+from sitl_bridge.frames import enu_to_ned, wrap_pi
+
+
+def action_space(config: ActionConfig) -> spaces.Space:
+    """The gymnasium action space of one drone: `Discrete(8)`, or for `type: velocity`
+    `Box(-1, 1, (3,) or (4,), float32)` (module docstring)."""
+    if not config.continuous:
+        return spaces.Discrete(NUM_ACTIONS)
+    return spaces.Box(low=-1.0, high=1.0, shape=(config.size,), dtype=np.float32)
+
+
+def normalised_action(action: object, config: ActionConfig) -> np.ndarray:
+    """A continuous action as float64 clipped to [-1, 1]; a one-line ValueError for a wrong
+    shape or a NaN/inf component."""
+    try:
+        vector = np.asarray(action, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"action must be {config.size} numbers in [-1, 1], got {action!r}") from None
+    if vector.shape != (config.size,):
+        raise ValueError(f"action must have {config.size} components (x, y, z"
+                         f"{', yaw rate' if config.size == 4 else ''}), got shape {np.shape(action)}")
+    if not np.all(np.isfinite(vector)):
+        raise ValueError(f"action must be finite (no NaN or inf), got {vector.tolist()}")
+    return np.clip(vector, -1.0, 1.0)
+
+
+def _turn(vector_enu: np.ndarray, rotation_rad: float) -> np.ndarray:
+    """`vector_enu` turned counter-clockwise (seen from above) by `rotation_rad` about z."""
+    c, s = math.cos(rotation_rad), math.sin(rotation_rad)
+    x, y = float(vector_enu[0]), float(vector_enu[1])
+    return np.array([c * x - s * y, s * x + c * y, float(vector_enu[2])])
+
+
+def velocity_command(action: np.ndarray, *, config: ActionConfig, yaw_enu_rad: float,
+                     start_enu_m: np.ndarray, goal_enu_m: np.ndarray) -> tuple[np.ndarray, float]:
+    """NED velocity (m/s) and yaw rate (rad/s, ENU: counter-clockwise; 0 under `yaw: hold`) of
+    a normalised continuous action (`normalised_action`) under the scenario's settings;
+    `yaw_enu_rad` is the drone's heading now (read by `frame: body`)."""
+    direction = np.asarray(action[:3], dtype=float)
+    norm = float(np.linalg.norm(direction))
+    velocity_enu = direction * config.max_speed_m_s / max(1.0, norm)
+    if config.frame == "goal":
+        velocity_enu = _turn(velocity_enu, goal_frame_yaw_rad(start_enu_m, goal_enu_m))
+    elif config.frame == "body":
+        velocity_enu = _turn(velocity_enu, wrap_pi(yaw_enu_rad - math.pi / 2.0))  # y axis = the nose
+    rate = float(action[3]) * math.radians(config.max_yaw_rate_deg_s) if config.size == 4 else 0.0
+    return enu_to_ned(velocity_enu), rate
 
 _SWAP = {Action.EAST: Action.WEST, Action.WEST: Action.EAST,
          Action.SOUTH: Action.NORTH, Action.NORTH: Action.SOUTH}

@@ -6,7 +6,9 @@ import numpy as np
 
 from sitl_bridge.client.actions import NUM_ACTIONS
 from sitl_bridge.envs.features import FEATURE_MEANINGS
+from sitl_bridge.envs.rewards import PER_SECOND
 from sitl_bridge.envs.scenario import Scenario, load_scenario
+from sitl_bridge.envs.task import ActionConfig
 
 ACTION_MEANINGS = {
     "world": ("east", "west", "south", "north", "down", "up", "toward the goal", "hover"),
@@ -24,23 +26,53 @@ def _bounds(values: np.ndarray) -> str:
     return f"{float(np.min(values)):g} .. {float(np.max(values)):g}"
 
 
+VELOCITY_AXES = {
+    "world": ("east", "north", "up"),
+    "goal": ("right of the start-goal direction", "forward (along it, horizontally)", "up"),
+    "body": ("right of the drone's heading", "forward (the nose, horizontally)", "up"),
+}
+"""Axes of a continuous velocity action in each frame (`envs/actions.py` applies them)."""
+
+
+def _actions(a: ActionConfig) -> list[str]:
+    """The `## Actions` section: the discrete table, or the continuous vector's components."""
+    if not a.continuous:
+        lines = [
+            "## Actions",
+            f"Discrete({NUM_ACTIONS}), each a velocity of {a.speed_m_s:g} m/s held for {a.duration_s:g} s of "
+            "simulated time" + (f" then {a.zero_velocity_s:g} s hover" if a.zero_velocity_s else "")
+            + f", frame `{a.frame}`" + (f"; for drones {list(a.swap_drones)} 0/1 and 2/3 are swapped"
+                                         if a.swap_drones else ""),
+            "",
+            "| action | meaning |",
+            "|---|---|",
+        ]
+        return lines + [f"| {code} | {meaning} |" for code, meaning in enumerate(ACTION_MEANINGS[a.frame])]
+    lines = [
+        "## Actions",
+        f"Box(-1, 1, ({a.size},), float32): a velocity setpoint held for {a.duration_s:g} s of simulated time "
+        f"(one decision every {a.duration_s:g} s), frame `{a.frame}`. The vector (x, y, z) times "
+        f"{a.max_speed_m_s:g} m/s is the velocity, its norm capped at 1 (so the speed never exceeds "
+        f"{a.max_speed_m_s:g} m/s in any direction); components are clipped to [-1, 1] first, and NaN or "
+        "inf is an error.",
+        "",
+        "| index | meaning | at 1 |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {i} | velocity {axis} | {a.max_speed_m_s:g} m/s |" for i, axis in enumerate(VELOCITY_AXES[a.frame])]
+    if a.yaw == "rate":
+        lines.append(f"| 3 | yaw rate, counter-clockwise seen from above (left) | {a.max_yaw_rate_deg_s:g} deg/s |")
+    else:
+        lines += ["", "The heading is held (`yaw: hold`)."]
+    return lines
+
+
 def describe(scenario: Scenario) -> str:
     """Markdown: description, action settings, observation table, rewards, episode end."""
     task = scenario.task
     world = scenario.world
     lines = [f"# {world.name}", "", world.description.strip() or "(no description)", ""]
-    a = task.action
-    lines += [
-        "## Actions",
-        f"Discrete({NUM_ACTIONS}), each a velocity of {a.speed_m_s:g} m/s held for {a.duration_s:g} s of "
-        "simulated time" + (f" then {a.zero_velocity_s:g} s hover" if a.zero_velocity_s else "")
-        + f", frame `{a.frame}`" + (f"; for drones {list(a.swap_drones)} 0/1 and 2/3 are swapped"
-                                     if a.swap_drones else ""),
-        "",
-        "| action | meaning |",
-        "|---|---|",
-    ]
-    lines += [f"| {code} | {meaning} |" for code, meaning in enumerate(ACTION_MEANINGS[a.frame])]
+    lines += _actions(task.action)
     lines += [
         "",
         f"## Observation (per drone, {task.observation_size} values, float32)",
@@ -54,7 +86,12 @@ def describe(scenario: Scenario) -> str:
                      f"{_bounds(f.low)} | {_bounds(f.high)} |")
         index += f.size
     lines += ["", "## Rewards", "| term | scale |", "|---|---|"]
-    lines += [f"| `{t.name}` | {t.scale:g} |" for t in task.rewards]
+    lines += [f"| `{t.name}` | {t.scale:g}" + (" per second" if t.name in PER_SECOND else "") + " |"
+              for t in task.rewards]
+    step_s = task.action.step_s
+    if step_s != 1.0 and any(t.name in PER_SECOND for t in task.rewards):
+        lines.append(f"\nThe terms per second pay scale x {step_s:g} each {step_s:g} s step "
+                     "(the same return for the same flight at any decision rate).")
     lines += [f"\n`{t.name}` measures progress along the shortest path to the goal box around the static "
               f"obstacles, kept {t.path.clearance_m:g} m clear, on a {t.path.cell_m:g} m grid "
               "(not along the straight line)." for t in task.rewards if t.path is not None]
@@ -69,7 +106,8 @@ def describe(scenario: Scenario) -> str:
         lines += ["", "## Priority", f"Rule `{task.priority}` (sitl_bridge/envs/priority.py): "
                   "1 = right of way, 0 = yields."]
     lines += ["", "## Episode end",
-              f"Terminated: {'; '.join(ends)}. Truncated: after {task.max_steps} steps."]
+              f"Terminated: {'; '.join(ends)}. Truncated: after {task.max_steps} steps"
+              + (f" ({task.max_time_s:g} s of simulated time)." if task.max_time_s is not None else ".")]
     if world.num_vehicles > 1:
         after = "lands if it is at its goal, else hovers" if end.after_goal == "land" else "hovers"
         blame = ("the drones without right of way (one with right of way over all in it stops, truncated "

@@ -11,6 +11,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from sitl_bridge.client.actions import NUM_ACTIONS
+from sitl_bridge.envs.actions import action_space
 from sitl_bridge.envs.backends.base import Backend
 from sitl_bridge.envs.manual import describe
 from sitl_bridge.envs.options import EnvOptions
@@ -27,7 +28,8 @@ class SitlParallelEnv(ParallelEnv):
     ## Description
     The multi-drone form of `SitlEnv` (read its manual for actions, observation features,
     rewards and episode end; they are the same per drone). Agents are the world's vehicle names
-    (e.g. `drone0`, `drone1`); every agent has the same `Discrete(8)` action space and the same
+    (e.g. `drone0`, `drone1`); every agent has the same action space (`Discrete(8)`, or the
+    `Box(-1, 1)` velocity vector of `task.action.type: velocity`) and the same
     observation `Box`, so one shared policy can fly all of them (the thesis's TE and TW). All
     drones fly their actions at once for the action's duration, then the simulation is held
     while the agents decide.
@@ -62,7 +64,7 @@ class SitlParallelEnv(ParallelEnv):
         self.agents: list[str] = []
         self._index = {name: i for i, name in enumerate(self.possible_agents)}
         self._observation_space = observation_space(self.scenario)
-        self._action_space = spaces.Discrete(NUM_ACTIONS)
+        self._action_space = action_space(self.scenario.task.action)  # Discrete(8) or Box(-1, 1), per agent
         self._rng = np.random.default_rng(self.options.seed)
         self.render_mode = self.options.render_mode
         self.metadata = {**self.metadata, "render_fps": self.scenario.task.render.fps}
@@ -78,7 +80,7 @@ class SitlParallelEnv(ParallelEnv):
         return self._observation_space
 
     @functools.cache  # noqa: B019
-    def action_space(self, agent: str) -> spaces.Discrete:
+    def action_space(self, agent: str) -> spaces.Space:
         return self._action_space
 
     def reset(self, seed: int | None = None,
@@ -94,14 +96,17 @@ class SitlParallelEnv(ParallelEnv):
         return ({a: results[self._index[a]].observation for a in self.agents},
                 {a: results[self._index[a]].info for a in self.agents})
 
-    def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        continuous = self.scenario.task.action.continuous
         for agent, action in actions.items():
             if agent not in self._index:
                 raise KeyError(f"unknown agent {agent!r} (agents: {self.possible_agents})")
-            if not self._action_space.contains(action):
+            if not continuous and not self._action_space.contains(action):
                 raise ValueError(f"{agent}: action must be in 0..{NUM_ACTIONS - 1}, got {action!r}")
         live = list(self.agents)
-        results = self.runner.step({self._index[a]: int(actions[a]) for a in live if a in actions})
+        # continuous vectors: the runner checks them (finite, their shape) before anything flies
+        results = self.runner.step({self._index[a]: actions[a] if continuous else int(actions[a])
+                                    for a in live if a in actions})
         observations, rewards, terminations, truncations, infos = {}, {}, {}, {}, {}
         for agent in live:
             r = results[self._index[agent]]

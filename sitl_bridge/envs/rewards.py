@@ -13,7 +13,15 @@ the sum of `scale * term(view)` over the listed terms; unlisted terms are off.
 | `near_obstacle` | 1 when the lidar's near flag is set (and the drone did not crash) |
 | `crash` | 1 on a crash (collision, or the lidar crash flag when enabled) |
 | `out_of_workspace` | 1 when the drone left the workspace |
+| `smoothness` | (continuous actions only) the length of the change of the normalised action vector since the previous decision (0 at an episode's first decision): give it a negative scale for smoother commands. Its sum over an episode is the action path's total variation, the same for the same flight at any decision rate, so it is not scaled by the decision period |
 | `separation` | `max(0, 1 - d / distance_m)` for the nearest other drone still in the airspace (not landing at its goal under `end.after_goal: land`) at distance d (0 beyond `distance_m`, default 3 m, 1 when touching): give it a negative scale to keep drones apart; with `give_way: true` times `1 - own priority`, so only the drone without right of way pays (it is the one responsible for keeping clear, as the give-way aircraft is in the rules of the air) |
+
+Decision rate: the terms that pay every step (`per_step`, `near_obstacle`, `separation`) are
+rates per second of simulated time: one step pays `scale * term * step_s`, where `step_s` is the
+decision period (`task.action.duration_s` + `zero_velocity_s`). At the thesis's 1 s steps that
+is `scale * term`, unchanged; at 0.1 s decisions the same flight earns the same return, so a
+scenario's rate can change without re-tuning its weights. `closer_to_goal` (metres gained) and
+the one-off events (`goal_reached`, `crash`, `out_of_workspace`) need no scaling.
 
 Thesis ratios (chapter 5.3): closer +10..+20, goal +500..+1000, per step -5..-10, near -10..-50,
 crash -100..-500. Keep penalties on the scale of the other terms (a -1e12 crash made NaN weights).
@@ -21,6 +29,7 @@ crash -100..-500. Keep penalties on the scale of the other terms (a -1e12 crash 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -43,9 +52,17 @@ class RewardTerm:
     term: Callable[[DroneView], float]
     path: PathGrid | None = None
     """The path distance the term reads (`DroneView.path_distance`), None when it reads none."""
+    period_s: float = 1.0
+    """Seconds one step stands for: the decision period for the per-second terms (`PER_SECOND`),
+    1 for the others."""
+
+    @property
+    def step_scale(self) -> float:
+        """What a term value of 1 pays in one step (`scale * period_s`)."""
+        return self.scale * self.period_s
 
     def __call__(self, view: DroneView) -> float:
-        return self.scale * float(self.term(view))
+        return self.step_scale * float(self.term(view))
 
 
 def progress_toward_goal(view: DroneView) -> float:
@@ -84,6 +101,13 @@ def out_of_workspace(view: DroneView) -> float:
     return 1.0 if view.out_of_workspace else 0.0
 
 
+def smoothness(view: DroneView) -> float:
+    """Length of the change of the normalised action since the previous decision (0 at the first)."""
+    if view.action is None or view.previous_action is None:
+        return 0.0
+    return float(np.linalg.norm(view.action - view.previous_action))
+
+
 def separation(distance_m: float, give_way: bool = False) -> Callable[[DroneView], float]:
     """Closeness of the nearest other drone: 1 - d / distance_m inside distance_m, else 0; with
     `give_way`, times 1 - own priority (the drone with right of way pays nothing)."""
@@ -105,8 +129,11 @@ _SIMPLE_TERMS: dict[str, Callable[[DroneView], float]] = {
     "near_obstacle": near_obstacle,
     "crash": crash,
     "out_of_workspace": out_of_workspace,
+    "smoothness": smoothness,
 }
 TERM_NAMES = ("closer_to_goal", "separation", *_SIMPLE_TERMS)
+PER_SECOND = frozenset({"per_step", "near_obstacle", "separation"})
+"""Terms paid every step, scaled by the decision period (module docstring)."""
 
 
 def _scale(node: Node) -> float:
@@ -148,14 +175,16 @@ def _parse_term(name: str, node: Node) -> RewardTerm:
     return RewardTerm(name, _scale(node), _SIMPLE_TERMS[name])
 
 
-def parse_rewards(node: Node) -> list[RewardTerm]:
-    """Parse the `reward:` mapping into scaled terms (in file order)."""
+def parse_rewards(node: Node, step_s: float = 1.0) -> list[RewardTerm]:
+    """Parse the `reward:` mapping into scaled terms (in file order); `step_s` is the decision
+    period the per-second terms (`PER_SECOND`) are scaled by."""
     terms = []
     for name, child in node.items():
         if name not in TERM_NAMES:
             raise ConfigError(f"{node.source}: {child.path}: unknown reward term "
                               f"(expected one of {', '.join(TERM_NAMES)})")
-        terms.append(_parse_term(name, child))
+        term = _parse_term(name, child)
+        terms.append(dataclasses.replace(term, period_s=step_s) if name in PER_SECOND else term)
     if not terms:
         raise node.error("at least one reward term")
     return terms

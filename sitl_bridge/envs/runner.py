@@ -1,7 +1,7 @@
 """Episode logic shared by the single- and multi-drone envs: actions in, per-drone results out.
 
-One `EpisodeRunner` drives one backend through episodes of one scenario: it turns action codes
-into velocity setpoints, flies them for the action's duration (plus the optional zero-velocity
+One `EpisodeRunner` drives one backend through episodes of one scenario: it turns actions
+(discrete codes or continuous vectors, `envs/actions.py`) into velocity setpoints, flies them for the action's duration (plus the optional zero-velocity
 phase), then builds each drone's view, observation, reward terms and episode end.
 """
 
@@ -15,18 +15,18 @@ from typing import Any
 import numpy as np
 
 from sitl_bridge.client.actions import Action
-from sitl_bridge.envs.actions import action_velocity
+from sitl_bridge.envs.actions import action_velocity, normalised_action, velocity_command
 from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend, Snapshot
 from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.envs.path_distance import PathField, Unreachable, path_field
 from sitl_bridge.envs.priority import priorities
 from sitl_bridge.envs.scenario import Scenario
-from sitl_bridge.envs.task import EndConfig
+from sitl_bridge.envs.task import ActionConfig, EndConfig
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.envs.watched_flight import fly_watched
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.frames import quat_to_euler
+from sitl_bridge.frames import quat_to_euler, wrap_pi, yaw_enu_to_ned
 from sitl_bridge.sensors.lidar import LidarScan
 from sitl_bridge.world import GoalPlacement
 
@@ -57,6 +57,11 @@ def _inside(goal: GoalPlacement, position: np.ndarray, margin_m: float) -> bool:
     return bool(np.all(np.abs(position - center) <= half))
 
 
+def _yaw_enu(state: Any) -> float:
+    """A vehicle state's true heading (ENU yaw, rad)."""
+    return float(quat_to_euler(state.quaternion_enu_flu)[2])
+
+
 def _rays(scan: LidarScan) -> dict[str, np.ndarray]:
     """A `LidarScan`'s ray distances by group, as `DroneView.lidar` holds them."""
     return {"horizontal": scan.horizontal_m, "up": scan.up_m, "down": scan.down_m}
@@ -82,6 +87,9 @@ class EpisodeRunner:
         self._goals: list[np.ndarray] = []
         self._paths: list[PathField | None] = [None] * self.num_drones
         self._last: list[DroneResult] = []
+        self._previous_actions: list[np.ndarray | None] = [None] * self.num_drones
+        self._yaw_targets_enu: list[float] = [0.0] * self.num_drones
+        """Per drone, the heading setpoint (ENU yaw) that `yaw: rate` actions move."""
 
     @classmethod
     def open(cls, scenario: Scenario, options: EnvOptions, backend: Backend | None = None) -> EpisodeRunner:
@@ -115,6 +123,8 @@ class EpisodeRunner:
         self._starts = [np.array(s.position_enu_m, dtype=float) for s in snapshot.states]
         self._goals = [np.array(g.center_m, dtype=float) for g in snapshot.goals]
         self._paths = self._path_fields(snapshot)
+        self._previous_actions = [None] * self.num_drones
+        self._yaw_targets_enu = [_yaw_enu(s) for s in snapshot.states]
         results = []
         for i in range(self.num_drones):
             view = self._view(i, snapshot, snapshot, crashed=False)
@@ -123,21 +133,27 @@ class EpisodeRunner:
         self._last = results
         return results
 
-    def step(self, actions: Mapping[int, int]) -> list[DroneResult]:
-        """Fly one action per active drone (missing or finished drones hover) and score it."""
+    def step(self, actions: Mapping[int, Any]) -> list[DroneResult]:
+        """Fly one action per active drone (missing or finished drones hover) and score it:
+        a code (discrete) or a vector (`type: velocity`; a bad one raises ValueError before
+        anything flies)."""
         if self._snapshot is None:
             raise RuntimeError("call reset() before step()")
         before = self._snapshot
         config = self.scenario.task.action
-        velocities = []
         flying = [not done for done in self.done]
-        for i in range(self.num_drones):
-            code = int(actions.get(i, Action.HOVER)) if flying[i] else self._after_end(i)
-            velocities.append(action_velocity(
-                code, config=config, drone=i,
-                position_enu_m=np.asarray(before.states[i].position_enu_m, dtype=float),
-                start_enu_m=self._starts[i], goal_enu_m=self._goals[i]))
-        snapshot, collided = fly_watched(self.backend, velocities, config.duration_s, self.on_frame)
+        yaws: list[float] | None = None
+        normalised: dict[int, np.ndarray] = {}
+        if config.continuous:
+            checked = {i: normalised_action(a, config) for i, a in actions.items()}  # every one, flying or not
+            normalised = {i: a for i, a in checked.items() if 0 <= i < self.num_drones and flying[i]}
+            velocities, yaws = self._velocity_setpoints(normalised, before, flying)
+        else:
+            velocities = []
+            for i in range(self.num_drones):
+                code = int(actions.get(i, Action.HOVER)) if flying[i] else self._after_end(i)
+                velocities.append(self._code_velocity(code, i, before, config))
+        snapshot, collided = fly_watched(self.backend, velocities, config.duration_s, self.on_frame, yaws)
         if config.zero_velocity_s > 0.0:
             snapshot, stopped = fly_watched(self.backend, [np.zeros(3)] * self.num_drones, config.zero_velocity_s,
                                             self.on_frame)
@@ -158,10 +174,39 @@ class EpisodeRunner:
                 results.append(DroneResult(self._observe(view), 0.0, not truncated, truncated,
                                            self._info(view, self.outcomes[i], {}, None)))
                 continue
-            results.append(self._score(i, snapshot, before, actions.get(i), crashed=crashed[i],
+            action = normalised.get(i) if config.continuous else actions.get(i)
+            results.append(self._score(i, snapshot, before, action, crashed=crashed[i],
                                        by_drones_only=by_drones_only[i], flying=flying))
+            if config.continuous:
+                self._previous_actions[i] = normalised.get(i, np.zeros(config.size))
         self._last = results
         return results
+
+    def _code_velocity(self, code: int, i: int, before: Snapshot, config: ActionConfig) -> np.ndarray:
+        """NED velocity of discrete `code` for drone `i` from its state in `before`."""
+        return action_velocity(code, config=config, drone=i,
+                               position_enu_m=np.asarray(before.states[i].position_enu_m, dtype=float),
+                               start_enu_m=self._starts[i], goal_enu_m=self._goals[i])
+
+    def _velocity_setpoints(self, normalised: dict[int, np.ndarray], before: Snapshot,
+                            flying: list[bool]) -> tuple[list[np.ndarray], list[float] | None]:
+        """`type: velocity`: every drone's NED velocity for this decision (a flying drone without
+        an action hovers; an ended one hovers or lands, as for discrete actions, at 1 m/s), and
+        under `yaw: rate` the heading setpoints (NED yaw) moved by each commanded rate."""
+        config = self.scenario.task.action
+        velocities = []
+        for i in range(self.num_drones):
+            if not flying[i]:
+                velocities.append(self._code_velocity(self._after_end(i), i, before, ActionConfig()))
+                continue
+            velocity, rate = velocity_command(
+                normalised.get(i, np.zeros(config.size)), config=config,
+                yaw_enu_rad=_yaw_enu(before.states[i]), start_enu_m=self._starts[i], goal_enu_m=self._goals[i])
+            velocities.append(velocity)
+            self._yaw_targets_enu[i] = wrap_pi(self._yaw_targets_enu[i] + rate * config.duration_s)
+        if config.yaw != "rate":
+            return velocities, None
+        return velocities, [yaw_enu_to_ned(y) for y in self._yaw_targets_enu]
 
     @property
     def last_results(self) -> list[DroneResult]:
@@ -246,10 +291,12 @@ class EpisodeRunner:
         partners = self._conflict_partners(i, positions, flying)
         return bool(partners) and all(ranks[i] > ranks[j] for j in partners)
 
-    def _score(self, i: int, snapshot: Snapshot, before: Snapshot, action: int | None, *, crashed: bool,
+    def _score(self, i: int, snapshot: Snapshot, before: Snapshot, action: Any, *, crashed: bool,
                by_drones_only: bool, flying: list[bool]) -> DroneResult:
         end = self.scenario.task.end
         view = self._view(i, snapshot, before, crashed=crashed)
+        if isinstance(action, np.ndarray):
+            view = dataclasses.replace(view, action=action, previous_action=self._previous_actions[i])
         if not crashed and _ground_contact(view, end):
             view = dataclasses.replace(view, crashed=True)
         outcome: str | None = None
@@ -339,12 +386,13 @@ class EpisodeRunner:
         return np.concatenate(parts).astype(np.float32)
 
     def _info(self, view: DroneView, outcome: str | None, terms: dict[str, float],
-              action: int | None) -> dict[str, Any]:
+              action: Any) -> dict[str, Any]:
         assert self._snapshot is not None
         return {
             "step": self.step_count,
             "sim_time_s": self._snapshot.time_us / 1e6,
-            "action": action,
+            # a continuous action as flown: clipped to [-1, 1], a list (JSON-ready)
+            "action": action.tolist() if isinstance(action, np.ndarray) else action,
             "outcome": outcome,
             "reward_terms": terms,
             "position_enu_m": view.position_enu_m.copy(),

@@ -10,6 +10,7 @@ import numpy as np
 from gymnasium import spaces
 
 from sitl_bridge.client.actions import NUM_ACTIONS
+from sitl_bridge.envs.actions import action_space
 from sitl_bridge.envs.backends.base import Backend
 from sitl_bridge.envs.manual import describe
 from sitl_bridge.envs.options import EnvOptions
@@ -58,6 +59,14 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     Drones listed in `task.action.swap_drones` have 0/1 and 2/3 swapped (the thesis's fix for a
     drone facing the other way in world frame).
 
+    With `task.action.type: velocity` the action is continuous instead: `Box(-1, 1, (3,),
+    float32)` (x, y, z), or `(4,)` with `yaw: rate` (a yaw rate as 4th component), scaled to a
+    velocity setpoint of at most `max_speed_m_s` (the norm is capped, not each component) and
+    held `duration_s` (any multiple of the physics step, e.g. 0.1 s). Axes per `frame`: `world`
+    (east, north, up), `goal` (right, forward of the start-goal direction, up), `body` (right,
+    forward of the heading, up). Components are clipped to [-1, 1]; NaN or inf raises
+    ValueError. Details: `sitl_bridge.envs.actions`.
+
     ## Observation Space
     `Box(float32)`: the concatenation of the features listed in `task.observation`, in order,
     in the world ENU frame (x east, y north, z up; m, m/s, rad). Bounds per feature (values are
@@ -81,7 +90,7 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     ## Episode End
     Terminated: the drone is inside its goal region (`outcome` "goal"), it collided or the lidar
     crash flag is set (`"crash"`), or it left the workspace (`"out"`). Truncated: after
-    `task.max_steps` steps (`"timeout"`).
+    `task.max_steps` steps, or `task.max_time_s` simulated seconds (`"timeout"`).
 
     ## Info
     `step`, `sim_time_s` (simulated time since the episode's reset began), `action`, `outcome`
@@ -122,7 +131,7 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
         self.drone = drone
         self.runner = EpisodeRunner.open(self.scenario, self.options, backend)
         self.backend = self.runner.backend
-        self.action_space = spaces.Discrete(NUM_ACTIONS)
+        self.action_space = action_space(self.scenario.task.action)  # Discrete(8) or Box(-1, 1)
         self.observation_space = observation_space(self.scenario)
         self._first_seed = self.options.seed
         self.render_mode = self.options.render_mode
@@ -148,10 +157,13 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
             self._frames.restart()
         return mine.observation, mine.info
 
-    def step(self, action: int | np.integer) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        if not self.action_space.contains(action):
-            raise ValueError(f"action must be an integer in 0..{NUM_ACTIONS - 1}, got {action!r}")
-        results = self.runner.step({self.drone: int(action)})
+    def step(self, action: int | np.integer | np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self.scenario.task.action.continuous:  # the runner checks it (finite, its shape) and clips it
+            results = self.runner.step({self.drone: action})
+        else:
+            if not self.action_space.contains(action):
+                raise ValueError(f"action must be an integer in 0..{NUM_ACTIONS - 1}, got {action!r}")
+            results = self.runner.step({self.drone: int(action)})
         mine = results[self.drone]
         if self.render_mode == "human":
             self.render()

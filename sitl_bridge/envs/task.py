@@ -5,15 +5,18 @@ workspace; read by `sitl_bridge.world`) and the `task:` section read here (what 
 how it is rewarded, when an episode ends, what an action means). Example::
 
     task:
-      max_steps: 35                 # step limit -> truncated
+      max_steps: 35                 # step limit -> truncated (or max_time_s: simulated seconds)
       start_altitude_m: 2.5         # each episode starts hovering this high above the spawn
       start: {takeoff: false}       # true: take off to it every episode (default: placed there)
-      action:
+      action:                       # type: discrete (default, the thesis's eight codes)
         speed_m_s: 1.0              # every moving action flies this speed ...
         duration_s: 1.0             # ... for this many simulated seconds
         zero_velocity_s: 0.0        # optional hover phase after each action
         frame: world                # world (thesis) | goal (relative to the start-goal line)
         swap_drones: []             # drones whose 0/1 and 2/3 are swapped (the thesis's hack)
+      # action: {type: velocity, max_speed_m_s: 2.0, duration_s: 0.1, frame: world, yaw: hold}
+      #   continuous: a Box(-1, 1) vector (x, y, z[, yaw rate]) scaled to a velocity setpoint
+      #   (envs/actions.py); frame world | goal | body; yaw hold | rate (max_yaw_rate_deg_s)
       observation:                  # concatenated in this order
         - position: {decimals: 0}
         - orientation: {decimals: 0}
@@ -52,6 +55,7 @@ the key path (`sitl_bridge.errors.ConfigError`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from sitl_bridge.envs.features import Feature, parse_observation
@@ -61,13 +65,26 @@ from sitl_bridge.envs.view import ScenarioLimits
 from sitl_bridge.errors import ConfigError, Node
 from sitl_bridge.physics.render import CAMERA_MODES, RenderConfig
 
+ACTION_TYPES = ("discrete", "velocity")
+"""`task.action.type`: the thesis's eight codes, or a continuous velocity vector."""
 ACTION_FRAMES = ("world", "goal")
+"""Frames of discrete actions."""
+VELOCITY_FRAMES = ("world", "goal", "body")
+"""Frames of continuous velocity actions (envs/actions.py says what each axis means)."""
+YAW_MODES = ("hold", "rate")
+"""`task.action.yaw` of velocity actions: keep the heading, or a 4th component commands a yaw rate."""
+
+_DISCRETE_KEYS = frozenset({"speed_m_s", "zero_velocity_s", "swap_drones"})
+_VELOCITY_KEYS = frozenset({"max_speed_m_s", "yaw", "max_yaw_rate_deg_s"})
 
 
 @dataclass(frozen=True)
 class ActionConfig:
-    """What one discrete action means in the simulator."""
+    """What one action means in the simulator: a discrete code (default) or a continuous
+    velocity vector (`type: velocity`)."""
 
+    type: str = "discrete"
+    """`discrete` (the thesis's `Discrete(8)` table) or `velocity` (a `Box(-1, 1)` vector)."""
     speed_m_s: float = 1.0
     """Speed of every moving action (thesis: 1 m/s)."""
     duration_s: float = 1.0
@@ -80,10 +97,28 @@ class ActionConfig:
     swap_drones: tuple[int, ...] = ()
     """Drone indices whose actions 0/1 and 2/3 are swapped (the thesis's fix for a drone
     facing the other way in a world-frame head-on scenario)."""
+    max_speed_m_s: float = 2.0
+    """`velocity`: the speed of a unit-norm action (the speed is capped at this)."""
+    yaw: str = "hold"
+    """`velocity`: `hold` the heading, or `rate`: a 4th component commands a yaw rate."""
+    max_yaw_rate_deg_s: float = 45.0
+    """`velocity`, `yaw: rate`: the yaw rate of a component of 1 (counter-clockwise from above)."""
+
+    @property
+    def continuous(self) -> bool:
+        """Whether actions are continuous velocity vectors (`type: velocity`)."""
+        return self.type == "velocity"
+
+    @property
+    def size(self) -> int:
+        """Components of a continuous action: 3 (velocity), 4 with `yaw: rate`; 1 for a code."""
+        if not self.continuous:
+            return 1
+        return 4 if self.yaw == "rate" else 3
 
     @property
     def step_s(self) -> float:
-        """Simulated seconds one env step takes."""
+        """Simulated seconds one env step takes (the decision period)."""
         return self.duration_s + self.zero_velocity_s
 
 
@@ -136,6 +171,7 @@ class TaskConfig:
     """The parsed `task:` section of one scenario file."""
 
     max_steps: int
+    """Steps after which an episode is truncated (from `max_time_s` when the file gives that)."""
     start_altitude_m: float
     """Each episode starts with the drone hovering this high above its spawn point (the thesis
     took off before every episode)."""
@@ -152,6 +188,8 @@ class TaskConfig:
     """`start: {takeoff: true}`: every episode flies its take-off to the start altitude (the
     thesis's start); default: placed hovering there with no take-off flown (`direct`, `stub`;
     `px4` after its first episode, see `envs.backends.base`)."""
+    max_time_s: float | None = None
+    """The file's `max_time_s` (simulated seconds per episode), None when it gave `max_steps`."""
 
     @property
     def observation_size(self) -> int:
@@ -160,7 +198,14 @@ class TaskConfig:
 
 
 def _parse_action(node: Node, num_drones: int) -> ActionConfig:
-    node.reject_unknown({"speed_m_s", "duration_s", "zero_velocity_s", "frame", "swap_drones"})
+    node.reject_unknown({"type", "duration_s", "frame", *_DISCRETE_KEYS, *_VELOCITY_KEYS})
+    kind = node.get("type", "discrete").string(ACTION_TYPES)
+    if kind == "velocity":
+        return _parse_velocity_action(node)
+    for key in sorted(_VELOCITY_KEYS):
+        if node.has(key):
+            raise ConfigError(f"{node.source}: {node.get(key).path}: only with `type: velocity` "
+                              "(discrete actions fly speed_m_s)")
     swap: list[int] = []
     for item in node.get("swap_drones", []).list():
         swap.append(item.integer(minimum=0, maximum=num_drones - 1))
@@ -174,6 +219,22 @@ def _parse_action(node: Node, num_drones: int) -> ActionConfig:
         zero_velocity_s=node.get("zero_velocity_s", 0.0).number(non_negative=True, maximum=60.0),
         frame=node.get("frame", "world").string(ACTION_FRAMES),
         swap_drones=tuple(swap),
+    )
+
+
+def _parse_velocity_action(node: Node) -> ActionConfig:
+    for key in sorted(_DISCRETE_KEYS):
+        if node.has(key):
+            raise ConfigError(f"{node.source}: {node.get(key).path}: only with `type: discrete` "
+                              "(velocity actions use max_speed_m_s; each decision is held duration_s)")
+    return ActionConfig(
+        type="velocity",
+        max_speed_m_s=node.get("max_speed_m_s", ActionConfig.max_speed_m_s).number(positive=True, maximum=20.0),
+        duration_s=node.get("duration_s", 1.0).number(positive=True, maximum=60.0),
+        frame=node.get("frame", "world").string(VELOCITY_FRAMES),
+        yaw=node.get("yaw", "hold").string(YAW_MODES),
+        max_yaw_rate_deg_s=node.get("max_yaw_rate_deg_s", ActionConfig.max_yaw_rate_deg_s).number(
+            positive=True, maximum=360.0),
     )
 
 
@@ -214,22 +275,48 @@ def _parse_render(node: Node) -> RenderConfig:
     )
 
 
+MAX_EPISODE_STEPS = 100_000
+
+
+def _parse_episode_limit(node: Node, action: ActionConfig) -> tuple[int, float | None]:
+    """`max_steps`, or `max_time_s` turned into steps of the decision period (rounded up: the
+    episode ends at the first decision that reaches it), so changing the rate needs no re-tune."""
+    if node.has("max_steps") and node.has("max_time_s"):
+        raise ConfigError(f"{node.source}: task.max_time_s: give max_steps or max_time_s, not both")
+    if not node.has("max_time_s"):
+        return node.get("max_steps").integer(minimum=1, maximum=MAX_EPISODE_STEPS), None
+    limit = node.get("max_time_s")
+    seconds = limit.number(positive=True, maximum=1e6)
+    steps = math.ceil(seconds / action.step_s - 1e-9)
+    if steps > MAX_EPISODE_STEPS:
+        raise limit.error(f"at most {MAX_EPISODE_STEPS} decisions of {action.step_s:g} s", seconds)
+    return max(1, steps), seconds
+
+
 def parse_task(node: Node, limits: ScenarioLimits) -> TaskConfig:
     """Parse a `task:` node (its path should be `task`) for a world with the given limits."""
     if node.value is None:
         raise ConfigError(f"{node.source}: task: required section is missing")
-    node.reject_unknown({"max_steps", "start_altitude_m", "start", "action", "observation", "reward", "end",
-                         "render", "priority"})
+    node.reject_unknown({"max_steps", "max_time_s", "start_altitude_m", "start", "action", "observation",
+                         "reward", "end", "render", "priority"})
     start = node.get("start", {})
     start.reject_unknown({"takeoff"})
     observation = parse_observation(node.get("observation"), limits)
+    action = _parse_action(node.get("action", {}), limits.num_drones)
+    max_steps, max_time_s = _parse_episode_limit(node, action)
+    rewards = tuple(parse_rewards(node.get("reward"), action.step_s))
+    smooth = next((t for t in rewards if t.name == "smoothness"), None)
+    if smooth is not None and not action.continuous:
+        raise ConfigError(f"{node.source}: task.reward.smoothness: only with `task.action.type: velocity` "
+                          "(it reads the change of the continuous action)")
     return TaskConfig(
-        max_steps=node.get("max_steps").integer(minimum=1, maximum=100_000),
+        max_steps=max_steps,
+        max_time_s=max_time_s,
         start_altitude_m=node.get("start_altitude_m", 2.5).number(minimum=0.3, maximum=100.0),
         start_with_takeoff=start.get("takeoff", False).boolean(),
-        action=_parse_action(node.get("action", {}), limits.num_drones),
+        action=action,
         observation=tuple(observation),
-        rewards=tuple(parse_rewards(node.get("reward"))),
+        rewards=rewards,
         end=_parse_end(node.get("end", {})),
         source=node.source,
         render=_parse_render(node.get("render", {})),

@@ -63,6 +63,11 @@ class DroneView:
     reached_goal: bool = False
     out_of_workspace: bool = False
     step: int = 0
+    action: np.ndarray | None = None
+    """The normalised continuous action of this step (clipped to [-1, 1]); None for discrete
+    actions and at reset."""
+    previous_action: np.ndarray | None = None
+    """The one of the step before (None at an episode's first decision)."""
     path_distance: Callable[[np.ndarray], float] | None = None
     """Length of the shortest obstacle-free path (m) from a point to this drone's goal region
     (`envs/path_distance.py`), given when a reward term reads it (`closer_to_goal: {along: path}`)."""

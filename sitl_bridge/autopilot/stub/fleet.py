@@ -27,6 +27,7 @@ from .autopilot import StubAutopilot
 from .fence import Fence
 from .in_air_start import place_hovering
 from .params import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, ParamTable
+from .vec import wrap_pi
 from .vehicle import StubVehicle
 
 if TYPE_CHECKING:
@@ -34,6 +35,8 @@ if TYPE_CHECKING:
 
 SETPOINT_MATCH = 1e-4
 """A stub holds the setpoint sent when each component is this close (m/s)."""
+YAW_MATCH_RAD = 1e-5
+"""... and the heading sent this close (MAVLink carries it as float32 radians)."""
 
 TELEMETRY_BATCH_WALL_S = 0.002
 """In-process stubs send their telemetry streams at most this often in wall time while the
@@ -112,11 +115,15 @@ class InProcessStubFleet(AutopilotFleet):
         targets = [(stubs[self.instances.index(instance)], tuple(float(x) for x in velocity))
                    for instance, velocity in velocities_ned_m_s.items()]
 
+        def arrived(stub: StubAutopilot, target: tuple[float, ...]) -> bool:
+            # (north, east, down) or (north, east, down, yaw rad): a heading setpoint counts too
+            setpoint = stub.offboard_setpoint
+            if any(abs(a - b) > SETPOINT_MATCH for a, b in zip(setpoint.velocity_ned_m_s, target[:3], strict=True)):
+                return False
+            return len(target) < 4 or abs(wrap_pi(setpoint.yaw_rad - target[3])) <= YAW_MATCH_RAD
+
         def delivered() -> bool:
-            return all(
-                all(abs(a - b) <= SETPOINT_MATCH
-                    for a, b in zip(stub.offboard_setpoint.velocity_ned_m_s, velocity, strict=True))
-                for stub, velocity in targets)
+            return all(arrived(stub, target) for stub, target in targets)
 
         serve_until(delivered, timeout_s)
 

@@ -22,8 +22,9 @@ simulated step, so `direct` and `stub` agree on the same seed and actions:
 Backends are built as `Backend(world, options, start_altitude_m=..., takeoff=...)` with the
 env's whole `EnvOptions`; the registry (`sitl_bridge.autopilot.registry`) says which class serves which
 `autopilot=` kind.
-2. `fly(velocities_ned_m_s, duration_s)`: each vehicle's setpoint is set before the first step
-   of the span and held for exactly `duration_s` simulated seconds; then held.
+2. `fly(velocities_ned_m_s, duration_s, yaws_ned_rad=None)`: each vehicle's setpoint (and
+   heading, when given) is set before the first step of the span and held for exactly
+   `duration_s` simulated seconds; then held.
 """
 
 from __future__ import annotations
@@ -127,8 +128,11 @@ class Backend(Protocol):
         """Re-spawn in place and hover every vehicle at its spawn point; return the state."""
         ...
 
-    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
-        """Hold each vehicle's NED velocity setpoint for `duration_s` simulated seconds."""
+    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float,
+            yaws_ned_rad: Sequence[float] | None = None) -> Snapshot:
+        """Hold each vehicle's NED velocity setpoint for `duration_s` simulated seconds; with
+        `yaws_ned_rad`, each vehicle's heading setpoint (NED yaw, rad) too (MAVSDK's
+        `VelocityNedYaw`), else each keeps the heading it holds."""
         ...
 
     def close(self) -> None:

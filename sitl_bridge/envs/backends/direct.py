@@ -206,6 +206,7 @@ class DirectBackend:
         self._frame_of = [s.truth_frame if ground_truth else s.sample for s in self.sensors]
         self._collisions = CollisionFlags(self.num_drones)
         self._velocities: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)] * self.num_drones
+        self._yaws: list[float | None] = [None] * self.num_drones
         self._refresh_steps = max(1, self.steps_for(SETPOINT_PERIOD_S, exact=False))
         self.steps = 0
         self._closed = False
@@ -229,6 +230,7 @@ class DirectBackend:
                            [self.sim.time_us] * self.num_drones)
         self._lanes = [self._lane(i) for i in range(self.num_drones)]  # the controllers are new objects
         self._velocities = [(0.0, 0.0, 0.0)] * self.num_drones
+        self._yaws = [None] * self.num_drones
         if self.takeoff:
             self._hover_start()
         else:
@@ -236,11 +238,13 @@ class DirectBackend:
         self._collisions.clear()
         return self._snapshot()
 
-    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
+    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float,
+            yaws_ned_rad: Sequence[float] | None = None) -> Snapshot:
         if len(velocities_ned_m_s) != self.num_drones:
             raise ValueError(f"expected {self.num_drones} velocities, got {len(velocities_ned_m_s)}")
         self._collisions.clear()
-        self.set_velocities([tuple(float(c) for c in v) for v in velocities_ned_m_s])
+        self.set_velocities([tuple(float(c) for c in v) for v in velocities_ned_m_s],
+                            None if yaws_ned_rad is None else [float(y) for y in yaws_ned_rad])
         self.run_steps(self.steps_for(duration_s))  # exact: the loader checked the task's spans
         return self._snapshot()
 
@@ -258,11 +262,14 @@ class DirectBackend:
         """Physics steps in `seconds` (`world.clock.whole_steps`, as the lockstep's run_for)."""
         return whole_steps(seconds, self.sim.step_us, exact=exact)
 
-    def set_velocities(self, velocities: list[tuple[float, float, float]]) -> None:
-        """Give every autopilot its offboard velocity setpoint now (MAVSDK's first send)."""
+    def set_velocities(self, velocities: list[tuple[float, float, float]],
+                       yaws_ned_rad: list[float] | None = None) -> None:
+        """Give every autopilot its offboard velocity setpoint now (MAVSDK's first send), with a
+        heading (NED yaw) per vehicle when given (else each keeps the heading it holds)."""
         self._velocities = velocities
-        for ap, v in zip(self.autopilots, velocities, strict=True):
-            ap.set_velocity_setpoint_ned(v)
+        self._yaws = yaws_ned_rad if yaws_ned_rad is not None else [None] * self.num_drones
+        for ap, v, yaw in zip(self.autopilots, velocities, self._yaws, strict=True):
+            ap.set_velocity_setpoint_ned(v, yaw)
 
     def run_steps(self, steps: int, until: Callable[[], bool] | None = None) -> int:
         """Step `steps` times (or until `until()` holds after a step); returns steps taken.
@@ -275,8 +282,8 @@ class DirectBackend:
         refresh = self._refresh_steps
         for k in range(steps):
             if k and k % refresh == 0:
-                for ap, v in zip(autopilots, self._velocities, strict=True):
-                    ap.set_velocity_setpoint_ned(v)
+                for ap, v, yaw in zip(autopilots, self._velocities, self._yaws, strict=True):
+                    ap.set_velocity_setpoint_ned(v, yaw)
             time_us = sim.time_us
             commands: list[MotorCommand] = [
                 autopilots[i].update(frame_of[i](sim.state(i), time_us)) for i in range(n)
@@ -312,8 +319,8 @@ class DirectBackend:
         begin, push, finish = sim.begin_step, sim.push_wrench, sim.finish_step
         for k in range(steps):
             if k and k % refresh == 0:
-                for ap, v in zip(autopilots, self._velocities, strict=True):
-                    ap.set_velocity_setpoint_ned(v)
+                for ap, v, yaw in zip(autopilots, self._velocities, self._yaws, strict=True):
+                    ap.set_velocity_setpoint_ned(v, yaw)
             time_us = sim.time_us
             begin()
             for (i, truth, x, rotor_k, speeds, suite, est, est_s, est_g, ap, ctl, att_g, rate_s, rate_g, mix_c,

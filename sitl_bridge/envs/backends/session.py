@@ -152,7 +152,8 @@ class SessionBackend:
         self._collisions.clear()
         return self._snapshot()
 
-    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
+    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float,
+            yaws_ned_rad: Sequence[float] | None = None) -> Snapshot:
         fleet = self._fleet()
         session = self._session()
         if len(velocities_ned_m_s) != self.num_drones:
@@ -160,7 +161,8 @@ class SessionBackend:
         session.take_collisions()  # none since the last call's end, which was held
         try:
             # the fleet makes every setpoint reach its stub before time resumes, as in `direct`
-            fleet.fly([np.asarray(v, dtype=float) for v in velocities_ned_m_s], duration_s)
+            fleet.fly([np.asarray(v, dtype=float) for v in velocities_ned_m_s], duration_s,
+                      None if yaws_ned_rad is None else [math.degrees(float(y)) for y in yaws_ned_rad])
         except SessionError as exc:
             raise BackendError(f"{self.name}: {exc}") from None
         self._collisions.clear()

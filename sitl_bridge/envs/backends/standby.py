@@ -198,8 +198,10 @@ class StandbyBackend:
         snapshot = self._take_over(seed)
         return snapshot if snapshot is not None else self._restart(seed)
 
-    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float) -> Snapshot:
-        return self._worker().call("fly", [np.asarray(v, dtype=float) for v in velocities_ned_m_s], duration_s)
+    def fly(self, velocities_ned_m_s: Sequence[np.ndarray], duration_s: float,
+            yaws_ned_rad: Sequence[float] | None = None) -> Snapshot:
+        return self._worker().call("fly", [np.asarray(v, dtype=float) for v in velocities_ned_m_s], duration_s,
+                                   None if yaws_ned_rad is None else [float(y) for y in yaws_ned_rad])
 
     def close(self) -> None:
         if not self._closed:

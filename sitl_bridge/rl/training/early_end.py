@@ -52,7 +52,7 @@ class EarlyEndWatch:
         """The watch for `scenario` (None for an env without a scenario, e.g. a test's toy env)."""
         if scenario is None:
             return None
-        return cls(scenario.task.max_steps, {term.name: term.scale for term in scenario.task.rewards}, gamma)
+        return cls(scenario.task.max_steps, {term.name: term.step_scale for term in scenario.task.rewards}, gamma)
 
     def add(self, records: Iterable[EpisodeRecord]) -> str | None:
         """Count `records`; the warning text the first time the window shows the pattern."""
