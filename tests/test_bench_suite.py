@@ -27,11 +27,14 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     assert result["px4"] == result["px4_standby"] == result["px4_parallel"] == {"skipped": "PX4_BIN not set"}
     bare = result["physics"]["rtf"]["median"]
     assert bare > 0 and result["physics"]["fraction_of_bare"]["median"] == 1.0
-    for key in ("direct", "direct_ground_truth", "batched", "stub", "train_steps_per_s"):
+    for key in ("direct", "direct_ground_truth", "decision_0_1s", "batched", "stub", "train_steps_per_s"):
         entry = result[key]
         assert set(entry["rtf"]) == {"median", "min", "max"}, key
         assert entry["rtf"]["min"] <= entry["rtf"]["median"] <= entry["rtf"]["max"], key
         assert entry["fraction_of_bare"]["median"] == entry["rtf"]["median"] / entry["bare_rtf_adjacent"], key
+    # continuous 0.1 s decisions: ten env steps per simulated second, beside the 1 s direct case
+    assert result["decision_0_1s"]["of_direct"] == (result["decision_0_1s"]["fraction_of_bare"]["median"]
+                                                    / result["direct"]["fraction_of_bare"]["median"])
     assert result["train_steps_per_s"]["updates"] > 0  # DQN updates were part of the timing
     assert set(result["reset_s"]) == {"direct", "stub"}
     for key in ("direct", "stub"):  # each reset after an ended episode of the random flight, timed

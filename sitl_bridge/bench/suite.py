@@ -11,6 +11,10 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
 * `direct`, `direct_ground_truth`: one `direct` env of the obstacle scenario (sensors + the
   stub's estimator and cascade at 250 Hz; the ground-truth estimator), random actions;
   every single-env case also gives `steps_per_s` (env steps per wall second, resets included).
+* `decision_0_1s`: the `direct` case on the continuous version of the scenario
+  (`obstacle_continuous.yaml`: random `Box(-1, 1)` velocity actions, one every 0.1 s of
+  simulated time, ten times the decisions of `direct`'s 1 s); `of_direct` is its fraction of
+  bare divided by `direct`'s (the per-decision overhead's cost; 1 = none).
 * `batched`: `make_vec_env(num_envs=N)` of the same scenario, aggregate over the N copies.
 * `stub`: one env on the full protocol path (HIL TCP + stub + MAVLink UDP + MAVSDK), speed 0.
 * `px4`: the same with real PX4 when `PX4_BIN` is set, else `{"skipped": reason}`;
@@ -64,7 +68,9 @@ from sitl_bridge.data_paths import worlds_dir
 from sitl_bridge.physics.bullet import p
 
 SCENARIO = "obstacle.yaml"
-KEYS = ("physics", "direct", "direct_ground_truth", "batched", "stub", "px4", "px4_standby", "reset_s",
+CONTINUOUS_SCENARIO = "obstacle_continuous.yaml"
+"""`decision_0_1s`'s scenario: `SCENARIO` with continuous velocity actions every 0.1 s."""
+KEYS = ("physics", "direct", "direct_ground_truth", "decision_0_1s", "batched", "stub", "px4", "px4_standby", "reset_s",
         "train_steps_per_s", "parallel", "px4_parallel")
 
 
@@ -111,8 +117,8 @@ def _rtf_entry(rtfs: list[float], bare: float, **extra: Any) -> dict[str, Any]:
     return entry
 
 
-def _scenario() -> Path:
-    return worlds_dir() / SCENARIO
+def _scenario(name: str = SCENARIO) -> Path:
+    return worlds_dir() / name
 
 
 def _fly(step: Callable[[], float], sim_s: float) -> float:
@@ -169,12 +175,19 @@ class _RandomFlight:
     def __init__(self, env: Any, seed: int = 0) -> None:
         self.env = env
         self.rng = np.random.default_rng(seed)
-        self.step_s = env.scenario.task.action.step_s
+        action = env.scenario.task.action
+        self.step_s = action.step_s
+        self.action_size = action.size if action.continuous else 0  # 0: a discrete code
         self.episodes_ended = 0
         self.episode_reset_s: list[float] = []
 
+    def _action(self) -> Any:
+        if self.action_size:
+            return self.rng.uniform(-1.0, 1.0, self.action_size).astype(np.float32)
+        return int(self.rng.integers(8))
+
     def __call__(self) -> float:
-        _, _, terminated, truncated, _ = self.env.step(int(self.rng.integers(8)))
+        _, _, terminated, truncated, _ = self.env.step(self._action())
         if terminated or truncated:
             self.episodes_ended += 1
             t0 = time.perf_counter()
@@ -199,13 +212,14 @@ def _episode_starts(before: tuple[int, int, int], after: tuple[int, int, int]) -
 
 
 def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
-              px4_bin: str | None = None, standby: bool = False) -> tuple[dict[str, Any], list[float]]:
+              px4_bin: str | None = None, standby: bool = False,
+              scenario: str = SCENARIO) -> tuple[dict[str, Any], list[float]]:
     """(figures, reset wall seconds) for one single env on `backend`."""
     from sitl_bridge.bench.stub import BENCH_INSTANCE_BASE
     from sitl_bridge.envs import make_env
 
     # session backends claim a free instance from here up (px4: in 0..9)
-    env = make_env(_scenario(), autopilot=backend, speed_factor=0.0, seed=0, instance_base=BENCH_INSTANCE_BASE,
+    env = make_env(_scenario(scenario), autopilot=backend, speed_factor=0.0, seed=0, instance_base=BENCH_INSTANCE_BASE,
                    estimator=estimator, px4_bin=px4_bin, standby=standby)
     step = _RandomFlight(env)
     try:
@@ -213,7 +227,7 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
         _fly(step, size.warmup_s)
         before, counts = _cpu_s(), _ended_and_in_air(step)
         rtfs = [_fly(step, size.sim_s) for _ in range(size.reps)]
-        cpu = _cpu_ms_per_step(before, _cpu_s(), size.reps * size.sim_s / _step_s())
+        cpu = _cpu_ms_per_step(before, _cpu_s(), size.reps * size.sim_s / step.step_s)
         starts = _episode_starts(counts, _ended_and_in_air(step))
         while len(step.episode_reset_s) < size.episode_resets:
             step()
@@ -232,7 +246,7 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
     if standby:
         extra["standby"] = True
     return _rtf_entry(rtfs, bare, backend=backend, estimator=estimator,
-                      steps_per_s=_spread([rtf / _step_s() for rtf in rtfs]), **extra), resets
+                      steps_per_s=_spread([rtf / step.step_s for rtf in rtfs]), **extra), resets
 
 
 def _batched_case(size: Size, bare: float) -> dict[str, Any]:
@@ -442,6 +456,7 @@ def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
     cases: list[tuple[str, Callable[[float], Any]]] = [
         ("direct", lambda bare: _env_case("direct", size, bare)),
         ("direct_ground_truth", lambda bare: _env_case("direct", size, bare, estimator="ground_truth")),
+        ("decision_0_1s", lambda bare: _env_case("direct", size, bare, scenario=CONTINUOUS_SCENARIO)),
         ("batched", lambda bare: _batched_case(size, bare)),
         ("stub", lambda bare: _env_case("stub", size, bare)),
         ("px4", lambda bare: _env_case("px4", size, bare, px4_bin=px4_bin)),
@@ -466,9 +481,12 @@ def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
             continue
         if isinstance(figures, tuple):
             figures, reset_s = figures
-            if key != "direct_ground_truth":
+            if key not in ("direct_ground_truth", "decision_0_1s"):
                 resets[key] = _spread(reset_s)
         figures["bare_rtf_adjacent"] = statistics.median(adjacent)
+        if key == "decision_0_1s" and "fraction_of_bare" in result.get("direct", {}):
+            figures["of_direct"] = (figures["fraction_of_bare"]["median"]
+                                    / result["direct"]["fraction_of_bare"]["median"])
         result[key] = figures
         log(f"  {key}: {_summary(figures)}  ({time.perf_counter() - t0:.0f} s)")
     result["reset_s"] = resets
