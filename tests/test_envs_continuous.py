@@ -106,7 +106,7 @@ def test_direct_and_stub_fly_the_same_continuous_setpoints(free_instance: int) -
         got, _ = _fly(stub, script, seed=2)
         # both end in the goal region; positions 0.1 m apart may cross its edge one 0.1 s decision apart
         assert abs(len(got) - len(expected)) <= 1
-        for step, (a, b) in enumerate(zip(expected, got)):
+        for step, (a, b) in enumerate(zip(expected, got, strict=False)):
             assert np.linalg.norm(a - b) < 0.1, (step, a, b)
     finally:
         stub.close()
