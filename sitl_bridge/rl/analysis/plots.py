@@ -1,4 +1,5 @@
-"""Learning-curve figure of one run, or of several runs (seeds) as mean and 95 % band.
+"""Learning-curve figure of one run, or of several runs (seeds) as mean and 95 % band (where at
+least `MIN_BAND_RUNS` runs contribute).
 
 Four panels, each with its units:
 
@@ -97,22 +98,25 @@ def pad(curves: Sequence[np.ndarray]) -> np.ndarray:
                       for c in curves])
 
 
+MIN_BAND_RUNS = 3
+"""A band is drawn only where at least this many runs contribute: with two, Student's t
+(12.7 at one degree of freedom) makes the band so wide it flattens every other line."""
+
+
 def mean_and_band(curves: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean and 95 % confidence band (Student t) across runs, point by point, as long as the
     longest curve: where some curves have ended (or are NaN) the others make the mean, and the
-    band is NaN (not drawn) where fewer than two remain. With one run the band is the curve."""
+    band is NaN (not drawn) where fewer than `MIN_BAND_RUNS` remain."""
     stacked = pad(curves)
     with warnings.catch_warnings():  # all-NaN columns (no loss yet) give NaN, as they should
         warnings.simplefilter("ignore", RuntimeWarning)
         mean = np.nanmean(stacked, axis=0)
-        if len(curves) < 2:
-            return mean, mean, mean
-        spread = np.nanstd(stacked, axis=0, ddof=1)
+        spread = np.nanstd(stacked, axis=0, ddof=1) if len(curves) >= 2 else np.full_like(mean, np.nan)
     from scipy import stats
 
     counts = np.sum(np.isfinite(stacked), axis=0)
     sem = spread / np.sqrt(np.maximum(counts, 1))
-    half = np.where(counts >= 2, stats.t.ppf(0.975, np.maximum(counts - 1, 1)) * sem, np.nan)
+    half = np.where(counts >= MIN_BAND_RUNS, stats.t.ppf(0.975, np.maximum(counts - 1, 1)) * sem, np.nan)
     return mean, mean - half, mean + half
 
 
@@ -171,7 +175,7 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     evals = [eval_series(d) for d in dirs]
     if all(len(e[0]) for e in evals):
         grid, curves = held_evaluations(evals)
-        label = "greedy success" + (" (mean, 95 % band)" if several else "")
+        label = "greedy success" + (f" (mean, 95 % band where >= {MIN_BAND_RUNS} runs)" if several else "")
         if several and ragged:
             label += "; a run that ended holds its last evaluation"
         draw(ax, curves, grid, "k", label, rate=True, marker="o", ms=3)
@@ -270,7 +274,7 @@ def plot_greedy_groups(groups: dict[str, Sequence[str | Path]], out: str | Path,
     ax.set_title(title or "greedy evaluation during training", fontsize=10)
     ax.grid(alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="lower right", fontsize=8, title="mean, 95 % band; ended runs hold their last value",
+        ax.legend(loc="lower right", fontsize=8, title=f"mean, 95 % band where >= {MIN_BAND_RUNS} runs; ended runs hold their last value",
                   title_fontsize=7)
     fig.tight_layout()
     fig.savefig(out, dpi=100)
