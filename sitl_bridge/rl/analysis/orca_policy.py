@@ -1,0 +1,177 @@
+"""ORCA as a policy: each drone flies the velocity ORCA (`rl.analysis.orca`) picks from its own
+observation, the classical baseline beside learned policies and rule sets.
+
+Per decision, one drone, no central planner and no messages:
+
+1. preferred velocity: of the velocities its action codes fly, the one whose step most shortens
+   the obstacle-free path distance to its own goal (`envs.path_distance`, the drone's map of the
+   scenario's static obstacles; in an empty world the straight line);
+2. ORCA in the horizontal plane against every other drone of its transponder data (position and
+   velocity) within `vertical_clearance_m` of its altitude; the vertical component stays the
+   preferred one (2D ORCA with altitude hold: drones are not assumed to climb out of each other's
+   way, and one far above or below is no conflict). Every other drone is assumed to run ORCA too
+   (reciprocal, half of the avoidance each);
+3. the scenario's discrete actions: of the action codes whose velocity (`envs.actions`, the
+   velocity the env flies for that code and drone) lies inside every ORCA half-plane, the one
+   nearest ORCA's velocity; when none does, the nearest of all. With continuous actions step 3 is
+   the identity: fly `OrcaPolicy.velocity(obs)`.
+
+The observation must hold `position`, `velocity`, `own_id` (which drone: its goal, its action
+mapping) and `transponder`; the goal comes from `goal_position` when observed, else from the world
+file (fixed goals only). Static obstacles must be fixed (not drawn per episode): they are the map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sitl_bridge.envs.actions import action_velocity
+from sitl_bridge.envs.features import observation_layout
+from sitl_bridge.envs.path_distance import PathField, path_field
+from sitl_bridge.envs.scenario import Scenario, load_scenario
+from sitl_bridge.errors import ConfigError
+from sitl_bridge.frames import ned_to_enu
+from sitl_bridge.rl.analysis.orca import HalfPlane, Neighbour, orca_velocity
+from sitl_bridge.rl.common.action_names import ACTION_NAMES_BY_FRAME
+from sitl_bridge.world.layout import GoalPlacement, realize
+
+NEEDED = ("position", "velocity", "own_id", "transponder")
+"""Observation features the ORCA policy reads."""
+
+
+@dataclass(frozen=True)
+class OrcaSettings:
+    """ORCA's parameters (defaults: a 1 m separation target with margin for 1 s decisions)."""
+
+    radius_m: float = 0.6
+    """Each drone's radius: two keep 1.2 m between centres, above the 1 m separation minimum."""
+    time_horizon_s: float = 5.0
+    """Conflicts are looked for this far ahead (tau)."""
+    vertical_clearance_m: float = 1.2
+    """Another drone further above or below than this is no conflict."""
+
+
+class OrcaPolicy:
+    """The ORCA policy of one scenario: call it with one drone's observation, get an action code."""
+
+    def __init__(self, scenario: Scenario, settings: OrcaSettings = OrcaSettings()) -> None:
+        self.scenario = scenario
+        self.settings = settings
+        layout = observation_layout(scenario.task.observation)
+        missing = [name for name in NEEDED if name not in layout]
+        if missing:
+            raise ConfigError(f"{scenario.task.source}: task.observation: the ORCA policy needs "
+                              f"{', '.join(NEEDED)}; missing {', '.join(missing)}")
+        self.layout = layout
+        world = scenario.world
+        if any(o.randomize is not None for o in world.obstacles):
+            raise ConfigError(f"{world.source}: obstacles drawn per episode: the ORCA policy's map needs fixed ones")
+        if "goal_position" not in layout and any(g.randomize_min_m is not None for g in world.goals):
+            raise ConfigError(f"{scenario.task.source}: task.observation: goals drawn per episode: the ORCA "
+                              "policy needs goal_position observed")
+        self._obstacles = realize(world, np.random.default_rng(0)).obstacles
+        self.action = scenario.task.action
+        self._fields: dict[tuple[float, ...], PathField] = {}
+
+    # -- what the drone reads ----------------------------------------------------------------
+    def _block(self, obs: np.ndarray, name: str) -> np.ndarray:
+        return obs[self.layout[name]]
+
+    def _drone(self, obs: np.ndarray) -> int:
+        return int(round(float(self._block(obs, "own_id")[0])))
+
+    def _goal(self, obs: np.ndarray, drone: int) -> GoalPlacement:
+        world = self.scenario.world
+        index = world.vehicles[drone].goal
+        if index is None:
+            raise ConfigError(f"{world.source}: vehicle {world.vehicles[drone].name} has no goal to fly to")
+        spec = world.goals[index]
+        center = self._block(obs, "goal_position") if "goal_position" in self.layout else spec.center_m
+        return GoalPlacement(spec.name, tuple(float(c) for c in center), spec.size_m)  # type: ignore[arg-type]
+
+    def _others(self, obs: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        rows = self._block(obs, "transponder").reshape(-1, 6)
+        return [(row[:3], row[3:]) for row in rows if np.any(row != 0.0)]  # all zeros: no drone there
+
+    # -- the three steps ---------------------------------------------------------------------
+    def _field(self, goal: GoalPlacement) -> PathField:
+        key = (*goal.center_m, *goal.size_m)
+        field = self._fields.get(key)
+        if field is None:
+            field = self._fields[key] = path_field(self.scenario.world.workspace, self._obstacles, goal)
+        return field
+
+    def preferred_velocity(self, position: np.ndarray, goal: GoalPlacement, moves: np.ndarray) -> np.ndarray:
+        """Of the velocities the drone can fly (`moves`, one per action code), the one whose step
+        ends with the least path distance to `goal` on its map (zero inside the goal box). A step
+        down the distance's gradient instead would wobble: near a narrow opening the gradient turns
+        vertical, and whole-metre steps overshoot the band of heights it leads through."""
+        field = self._field(goal)
+        if field.distance(position) <= 0.0:
+            return np.zeros(3)
+        after = [field.distance(position + move * self.action.duration_s) for move in moves]
+        return moves[int(np.argmin(after))]
+
+    def velocity(self, obs: np.ndarray) -> tuple[np.ndarray, list[HalfPlane]]:
+        """ORCA's velocity (ENU m/s) for the drone that observed `obs`, and its half-planes."""
+        obs = np.asarray(obs, dtype=float).reshape(-1)
+        drone = self._drone(obs)
+        position = self._block(obs, "position")
+        own_velocity = self._block(obs, "velocity")
+        preferred = self.preferred_velocity(position, self._goal(obs, drone), self.action_velocities(obs))
+        s = self.settings
+        neighbours = [Neighbour(p[:2], v[:2], s.radius_m) for p, v in self._others(obs)
+                      if abs(float(p[2] - position[2])) <= s.vertical_clearance_m]
+        horizontal, planes = orca_velocity(position[:2], own_velocity[:2], preferred[:2], s.radius_m,
+                                           self.action.speed_m_s, neighbours, time_horizon=s.time_horizon_s,
+                                           time_step=self.action.duration_s)
+        return np.array([horizontal[0], horizontal[1], preferred[2]]), planes
+
+    def action_velocities(self, obs: np.ndarray) -> np.ndarray:
+        """(codes, 3): the ENU velocity the env flies for each action code, for this drone here."""
+        obs = np.asarray(obs, dtype=float).reshape(-1)
+        drone = self._drone(obs)
+        position = self._block(obs, "position")
+        goal = np.asarray(self._goal(obs, drone).center_m, dtype=float)
+        start = np.asarray(self.scenario.world.vehicles[drone].spawn.position_m, dtype=float)
+        return np.array([ned_to_enu(action_velocity(code, config=self.action, drone=drone, position_enu_m=position,
+                                                    start_enu_m=start, goal_enu_m=goal))
+                         for code in range(len(ACTION_NAMES_BY_FRAME["world"]))])
+
+    def __call__(self, obs: np.ndarray) -> int:
+        wanted, planes = self.velocity(obs)
+        return choose_action(wanted, planes, self.action_velocities(obs), self.action.speed_m_s)
+
+
+def choose_action(wanted: np.ndarray, planes: list[HalfPlane], candidates: np.ndarray, speed: float) -> int:
+    """The action code (row of `candidates`, ENU m/s) that flies ORCA's velocity `wanted` best.
+
+    Only codes inside every half-plane (horizontally) are considered while any is; of those, when
+    ORCA wants to move (at least half the action speed), the one pointing most nearly its way, ties
+    broken to the right of it (both drones of a head-on pair then pass on their right); when it
+    wants to nearly stop, the nearest. With none inside, the nearest of all. Pointing rather than
+    nearest because the codes move at full speed: a sidestep is then further from a slightly
+    deflected velocity than hovering is, and nearest alone would hover in front of every conflict."""
+    distance = np.linalg.norm(candidates - wanted, axis=1)
+    allowed = np.array([all(plane.violation(c[:2]) <= 1e-9 for plane in planes) for c in candidates])
+    if not allowed.any():
+        return int(np.argmin(distance))
+    norm = float(np.linalg.norm(wanted))
+    if norm < 0.5 * speed:
+        return int(np.argmin(np.where(allowed, distance, np.inf)))
+    lengths = np.linalg.norm(candidates, axis=1)
+    moving = allowed & (lengths > 1e-9)
+    if not moving.any():
+        return int(np.argmin(np.where(allowed, distance, np.inf)))
+    unit = wanted / norm
+    cosine = candidates @ unit / np.maximum(lengths, 1e-9)
+    right = -(unit[0] * candidates[:, 1] - unit[1] * candidates[:, 0]) / np.maximum(lengths, 1e-9)
+    return int(np.argmax(np.where(moving, cosine + 1e-6 * right, -np.inf)))
+
+
+def orca_policy(world: str | Path, settings: OrcaSettings = OrcaSettings()) -> OrcaPolicy:
+    """The ORCA policy of the scenario file `world`."""
+    return OrcaPolicy(load_scenario(world), settings)
