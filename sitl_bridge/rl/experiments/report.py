@@ -16,7 +16,12 @@ from typing import Any
 
 from sitl_bridge.rl.experiments.results import THRESHOLD
 from sitl_bridge.rl.experiments.runner import RESERVED, Experiment, ReportSettings
-from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
+from sitl_bridge.rl.experiments.seeds import (
+    EVAL_SEED_BASE,
+    MINE_SEED_BASE,
+    SEED_BASES,
+    VERIFY_SEED_BASE,
+)
 
 FIGURES = "figures"
 RESULTS_MD = "RESULTS.md"
@@ -182,9 +187,12 @@ def _thesis_table(results: dict[str, Any]) -> list[str]:
 
 
 def _figures(results: dict[str, Any]) -> list[str]:
+    from sitl_bridge.rl.analysis.plots import MIN_BAND_RUNS
+
     lines = ["## Learning curves", "",
              "Per scenario, every finished seed: greedy success during training, training outcomes, reward "
-             "per term, exploration and loss (mean and 95 % band across seeds).", ""]
+             f"per term, exploration and loss (mean across seeds; the 95 % band only where at least {MIN_BAND_RUNS} "
+             "seeds are still training, so a band from two runs does not flatten the other lines).", ""]
     for stem in scenario_stems(results):
         figure = results[stem].get("figure")
         lines.append(f"- `{stem}`: " + (f"[{figure}]({figure})" if figure else "not run"))
@@ -344,7 +352,7 @@ def _behaviour_section(results: dict[str, Any], meta: dict[str, Any]) -> list[st
         return lines + _not_run("rules", meta)
     settings = meta.get("report") or {}
     lines += [f"Every finished seed's best checkpoint flies the same {settings.get('behaviour_episodes', '?')} greedy "
-              f"episodes (reset seeds `eval_seeds({EVAL_SEED_BASE}, n)`); each drone-episode is classified into one "
+              f"episodes (the mining episodes, reset seeds `eval_seeds({MINE_SEED_BASE}, n)`); each drone-episode is classified into one "
               "manoeuvre from its trajectory (`rl/analysis/behaviour.py`). The split counts the successful drone-episodes; "
               "competing manoeuvres are reported side by side, never chosen silently. Yields by priority: episodes "
               "whose hover/back-off yields follow the scenario's priority rule; through the opening: episodes whose "
@@ -398,7 +406,8 @@ def _rules_section(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
               "(seeds in which it shows in at least half of the successful episodes; successful episodes "
               "showing it). The rules kept *in the YAML* make the scenario's rules file (first matching rule "
               "wins; without a supported unconditional rule it ends with the default: fly toward the goal); it "
-              f"is flown as a scripted policy ({settings.get('verify_episodes', '?')} episodes, `eval --rules`) "
+              f"is flown as a scripted policy ({settings.get('verify_episodes', '?')} episodes, `eval --rules`, on the "
+              f"verification episodes `eval_seeds({VERIFY_SEED_BASE}, n)`, none of those it was mined on) "
               "in the scenario it came from and in the simpler ones before it, beside the greedy success of "
               "the network trained in each (the report's evaluation above).", ""]
     for stem, b in behaviour.items():
@@ -534,9 +543,20 @@ def _definitions(meta: dict[str, Any]) -> list[str]:
         "was recorded.",
         "- **Comparison test**: Mann-Whitney U (two-sided, scipy) on episodes to 90 %, runs that never "
         "reached it counted as their episode budget.",
+        _seed_sets(),
         *_report_flights(meta),
         "",
     ]
+
+
+def _seed_sets() -> str:
+    """The named sets of evaluation episodes (`rl.experiments.seeds`): what each one decides."""
+    return (f"- **Episode sets** (reset seeds `eval_seeds(base + offset, n)`, disjoint sets): choosing "
+            f"`eval_seeds({SEED_BASES['choosing']} + seed, n)`, the periodic evaluations during training that pick "
+            f"the best checkpoint; evaluation `eval_seeds({SEED_BASES['evaluation']} + seed, n)`, the greedy success "
+            f"reported here and `sitl-bridge eval`'s default; mining `eval_seeds({SEED_BASES['mining']}, n)`, the "
+            f"episodes behaviour and rules are mined from; verification `eval_seeds({SEED_BASES['verification']}, n)`, "
+            "the episodes the rules files are verified on and `sitl-bridge eval --rules`'s default.")
 
 
 def _report_flights(meta: dict[str, Any]) -> list[str]:
@@ -544,7 +564,8 @@ def _report_flights(meta: dict[str, Any]) -> list[str]:
     settings = meta.get("report")
     if not settings:
         return []
-    return [f"- **Report flights** (the experiment file's `report:` section; reset seeds `eval_seeds({EVAL_SEED_BASE}, n)`, "
+    return [f"- **Report flights** (the experiment file's `report:` section; reset seeds `eval_seeds({EVAL_SEED_BASE}, n)` "
+            f"for pictures, trees and backends, the mining and verification sets for behaviour and rules, "
             "cached per scenario in `rules/`, `trees/`, `figures/` while the checkpoints are the same): behaviour "
             f"{settings['behaviour_episodes']} greedy episodes per seed; rules YAMLs {settings['verify_episodes']} "
             f"episodes per scenario flown; trees depth <= {settings['distill_depth']}, {settings['distill_iterations']} "
@@ -586,6 +607,7 @@ def meta_of(experiment: Experiment, out: str | Path, command: str, sections_not_
         "seeds": list(seeds), "seeds_text": _seed_text(list(seeds)),
         "scenario_seeds": {s.stem: list(s.seeds) for s in experiment.scenarios if s.seeds is not None},
         "eval_episodes": experiment.eval_episodes, "threshold": THRESHOLD, "eval_seed_base": EVAL_SEED_BASE,
+        "seed_bases": SEED_BASES,
         "autopilot": experiment.autopilot, "training": invocations(out), "version": __version__,
         "git_commit": source_commit(), "written": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "sections_not_run": sections_not_run, "report": dataclasses.asdict(experiment.report),

@@ -2,8 +2,8 @@
 
 Per scenario with finished runs, the best checkpoint of every seed flies the same
 `behaviour_episodes` greedy episodes (`rl.analysis.behaviour_runs.analyse_runs`, reset seeds
-`eval_seeds(EVAL_SEED_BASE, n)`: the report's held-out evaluation episodes of seed 0, not those that
-chose the checkpoints). From them:
+`eval_seeds(MINE_SEED_BASE, n)`: the mining episodes, neither those that chose the checkpoints nor
+those the rules are verified on, see `seeds`). From them:
 
 - `results["behaviour"][stem]`: the manoeuvre counts and split across seeds and per seed, the
   scenario's actions named in its own frame, the thesis's rules 0-5 checked (recovered / not /
@@ -15,7 +15,8 @@ chose the checkpoints). From them:
   (a minority, a competitor, not expressible) has no verification of its own.
 
 Verification (the thesis's loop): `DIR/rules/<stem>.yaml` flies `verify_episodes` episodes
-(`rule_policy.verify_rules`, reset seeds `eval_seeds(EVAL_SEED_BASE, n)`) in the scenario it came
+(`rule_policy.verify_rules`, reset seeds `eval_seeds(VERIFY_SEED_BASE, n)`, none of the mining
+episodes) in the scenario it came
 from and in every simpler scenario of the experiment before it: the earlier stages of the
 experiment's comparisons (curricula) and the thesis's order `SIMPLER_THAN` (E < ER < TE, O < OR,
 W < TW), transitively. A scenario whose features the rules cannot read is reported as skipped.
@@ -34,7 +35,7 @@ from typing import Any
 from sitl_bridge.rl.analysis.candidate_rules import ANALYSIS_VERSION
 from sitl_bridge.rl.experiments import report_cache
 from sitl_bridge.rl.experiments.runner import RESERVED, ReportSettings
-from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
+from sitl_bridge.rl.experiments.seeds import MINE_SEED_BASE, VERIFY_SEED_BASE
 
 log = logging.getLogger(__name__)
 
@@ -94,19 +95,20 @@ def _analyse(stem: str, results: dict[str, Any], out: Path, simpler: list[str], 
     run_dirs = [out / s["run_dir"] for s in seeds]
     world = scenario_world(results, stem)
     say(f"behaviour and rules of {stem}: {len(run_dirs)} seeds x {settings.behaviour_episodes} greedy episodes")
-    report = analyse_runs(run_dirs, episodes=settings.behaviour_episodes, seed=EVAL_SEED_BASE)
+    report = analyse_runs(run_dirs, episodes=settings.behaviour_episodes, seed=MINE_SEED_BASE)
     folder = out / RULES_DIR
     document = {**report.document, "covers": [cover_name(world, folder)]}
     rules_file = write_rules_yaml(folder / f"{stem}.yaml", document)
     others = [scenario_world(results, s) for s in simpler]
     say(f"  rules/{stem}.yaml flown {settings.verify_episodes} episodes in {', '.join([stem, *simpler])}")
-    flown = verify_rules(rules_file, others, episodes=settings.verify_episodes, seed=EVAL_SEED_BASE)
+    flown = verify_rules(rules_file, others, episodes=settings.verify_episodes, seed=VERIFY_SEED_BASE)
     verification = {key: ({"covered": v["covered"], "skipped": v["skipped"]} if "skipped" in v
                           else {k: v[k] for k in VERIFICATION_KEYS}) for key, v in flown.items()}
     behaviour = {
         "status": "done", **report.analysis.to_dict(),
         "seed_labels": [run.label for run in report.analysis.runs],
-        "episodes_per_seed": settings.behaviour_episodes, "episode_seed": EVAL_SEED_BASE,
+        "episodes_per_seed": settings.behaviour_episodes, "episode_seed": MINE_SEED_BASE,
+        "verify_seed": VERIFY_SEED_BASE,
         "frame": report.summary.frame, "outcomes": report.summary.outcomes,
         "actions": report.summary.action_share, "top_sequences": report.summary.top_sequences,
         "thesis_rules": [c.to_dict() for c in report.checks],
@@ -141,7 +143,7 @@ def _scenario_entry(stem: str, results: dict[str, Any], out: Path, simpler: list
         checkpoints={str(s["seed"]): report_cache.checkpoint_digest(out / s["run_dir"]) for s in seeds},
         worlds={s: report_cache.world_digest(scenario_world(results, s)) for s in [stem, *simpler]},
         behaviour_episodes=settings.behaviour_episodes, verify_episodes=settings.verify_episodes,
-        episode_seed=EVAL_SEED_BASE, analysis=ANALYSIS_VERSION)
+        episode_seed=MINE_SEED_BASE, verify_seed=VERIFY_SEED_BASE, analysis=ANALYSIS_VERSION)
     cache = out / RULES_DIR / f"{stem}.json"
     entry = report_cache.load(cache, key)
     if entry is None or not (out / entry["behaviour"]["rules_file"]).is_file():
