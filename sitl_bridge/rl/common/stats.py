@@ -1,5 +1,6 @@
 """Statistics across runs (seeds): mean with a Student-t 95 % interval, the Wilson interval of a
-proportion, and the Mann-Whitney U test with its rank-biserial effect size.
+proportion, the Mann-Whitney U test with its rank-biserial effect size, and Holm-Bonferroni
+adjusted p-values for a family of tests.
 
 scipy is imported inside the functions that need it (`pip install 'sitl-bridge[analysis]'`).
 """
@@ -73,3 +74,16 @@ def mann_whitney(a: Sequence[float], b: Sequence[float]) -> MannWhitney:
     if math.isnan(p):  # scipy's asymptotic test divides by a zero variance when all values tie
         p = 1.0
     return MannWhitney(u, p, 2.0 * u / (len(a) * len(b)) - 1.0, len(a), len(b))
+
+
+def holm(p_values: Sequence[float | None]) -> list[float | None]:
+    """Holm-Bonferroni adjusted p-values of a family of tests (None: a test not run, left out of
+    the family): the k-th smallest of m is multiplied by m - k + 1, made non-decreasing in that
+    order and capped at 1. An adjusted p below alpha rejects at family-wise error rate alpha."""
+    ran = sorted((p, i) for i, p in enumerate(p_values) if p is not None)
+    adjusted: list[float | None] = [None] * len(p_values)
+    running = 0.0
+    for k, (p, i) in enumerate(ran):
+        running = max(running, min(1.0, (len(ran) - k) * p))
+        adjusted[i] = running
+    return adjusted

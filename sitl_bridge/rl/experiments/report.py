@@ -208,18 +208,18 @@ def _transfer_section(results: dict[str, Any]) -> list[str]:
               "scenario's run of the same seed (with, `--init-from` its best checkpoint). Episodes count "
               "only the training in the harder scenario. Test: " + next(iter(transfer.values()))["test"]
               + "; effect size: rank-biserial correlation P(with > without) - P(with < without), negative "
-              "when the transfer runs needed fewer episodes.", "",
+              f"when the transfer runs needed fewer episodes. {_family_text(transfer)}", "",
               "| comparison | seeds with / without | success with | success without | reached 90 % with / without "
-              "| episodes to 90 % median with / without | U | p | effect size | answer | thesis |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| episodes to 90 % median with / without | U | p | p (Holm) | effect size | answer | thesis |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, c in transfer.items():
         w, wo = c["with"], c["without"]
         lines.append(
             f"| {name}: `{c['from']}` -> `{c['to']}` | {len(w['seeds'])} / {len(wo['seeds'])} "
             f"| {_pct(w['success_mean'])}{_ci(w['success_ci95'])} | {_pct(wo['success_mean'])}{_ci(wo['success_ci95'])} "
             f"| {w['reached_90']} / {wo['reached_90']} | {_num(w['episodes_to_90_median'])} / "
-            f"{_num(wo['episodes_to_90_median'])} | {_num(c['u'], 1)} | {_p(c['p_value'])} "
-            f"| {_num(c['effect_size'], 2)} | {_answer(c)} | {_cell(_thesis_note(c.get('thesis') or {}))} |")
+            f"{_num(wo['episodes_to_90_median'])} | {_num(c['u'], 1)} | {_p(c['p_value'])} | {_p(c.get('p_holm'))} "
+            f"| {_num(c['effect_size'], 2)} | {_transfer_answer(c)} | {_cell(_thesis_note(c.get('thesis') or {}))} |")
     lines.append("")
     controls = {name: c["control"] for name, c in transfer.items() if c.get("control")}
     if controls:
@@ -227,14 +227,15 @@ def _transfer_section(results: dict[str, Any]) -> list[str]:
                   "runs train from scratch starting at the transfer runs' epsilon, so with vs control isolates what "
                   "the earlier network gives:", "",
                   "| comparison | control epsilon start | seeds | success control | reached 90 % "
-                  "| episodes to 90 % median with / control | U | p | effect size | answer |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+                  "| episodes to 90 % median with / control | U | p | p (Holm) | effect size | answer |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for name, k in controls.items():
             test = k["with_vs_control"]
             lines.append(f"| {name} | {k['epsilon_max']:g} | {len(k['seeds'])} "
                          f"| {_pct(k['success_mean'])}{_ci(k['success_ci95'])} | {k['reached_90']} "
                          f"| {_num(transfer[name]['with']['episodes_to_90_median'])} / {_num(k['episodes_to_90_median'])} "
-                         f"| {_num(test['u'], 1)} | {_p(test['p_value'])} | {_num(test['effect_size'], 2)} "
+                         f"| {_num(test['u'], 1)} | {_p(test['p_value'])} | {_p(test.get('p_holm'))} "
+                         f"| {_num(test['effect_size'], 2)} "
                          f"| {_answer(test)} |")
         lines.append("")
     for name, c in transfer.items():
@@ -297,13 +298,49 @@ def _thesis_note(thesis: dict[str, str]) -> str:
     return text + (f"; {thesis['source']}" if thesis.get("source") else "")
 
 
+def _family_text(transfer: dict[str, Any]) -> str:
+    """How many tests the answers are corrected for, and how."""
+    family = next((c.get("family_tests") for c in transfer.values() if c.get("family_tests") is not None), None)
+    if family is None:
+        return "Answers at 5 % per test, uncorrected (no adjusted p in these results)."
+    return (f"{family} tests in all (each comparison's with vs without, and with vs control where there is a "
+            "control arm); p (Holm): Holm-Bonferroni adjusted over those tests, and the answers use it "
+            "(5 % family-wise error).")
+
+
+def _significant(c: dict[str, Any]) -> bool:
+    p = c.get("p_holm", c["p_value"])
+    return p is not None and p < 0.05
+
+
 def _answer(c: dict[str, Any]) -> str:
     if c["p_value"] is None:
         return "not run"
     faster = "fewer" if c["effect_size"] < 0 else "more"
-    if c["p_value"] < 0.05:
-        return f"transfer needed {faster} episodes (p < 0.05)"
-    return "no significant difference at 5 %"
+    adjusted = "Holm p" if c.get("p_holm") is not None else "p"
+    if _significant(c):
+        return f"transfer needed {faster} episodes ({adjusted} < 0.05)"
+    return f"no significant difference at 5 % ({adjusted})"
+
+
+def _transfer_answer(c: dict[str, Any]) -> str:
+    """The with-vs-without answer, what the control arm shows about it, and where the runs ended."""
+    text = _answer(c)
+    control = c.get("control")
+    if control and c["p_value"] is not None and control["with_vs_control"]["p_value"] is not None:
+        test = control["with_vs_control"]
+        if _significant(test):
+            text += (f"; also against the control from scratch at the same starting epsilon "
+                     f"({control['epsilon_max']:g}): the earlier network helps")
+        else:
+            text += (f"; but not against the control from scratch at the same starting epsilon "
+                     f"({control['epsilon_max']:g}; {_answer(test)}): the lower starting exploration, "
+                     "not the earlier network, explains the difference")
+    ended_with, ended_without = c["with"]["success_mean"], c["without"]["success_mean"]
+    if ended_with is not None and ended_without is not None and ended_with != ended_without:
+        text += (f"; the transfer runs end {'worse' if ended_with < ended_without else 'better'} "
+                 f"({100 * ended_with:.1f} vs {100 * ended_without:.1f} % greedy success)")
+    return text
 
 
 def _not_run(name: str, meta: dict[str, Any]) -> list[str]:

@@ -293,7 +293,22 @@ def collect(experiment: Experiment, out: str | Path, *, workers: int = 1,
         results[scenario.stem] = {"world": _relative(Path(scenario.world), Path.cwd()), **summarize_seeds(seeds),
                                   "unfinished": missing, "thesis": scenario.thesis}
     results["transfer"] = {c.name: _comparison(experiment, c, results, group) for c in experiment.comparisons}
+    adjust_transfer_tests(results["transfer"])
     return results
+
+
+def adjust_transfer_tests(transfer: dict[str, Any]) -> None:
+    """Holm-Bonferroni over every test of the comparisons (with vs without, and with vs control
+    where there is a control arm): each test gets `p_holm` and `family_tests`, the number of
+    tests run (a test not run, p None, is not counted)."""
+    from sitl_bridge.rl.common.stats import holm
+
+    tests = [entry for c in transfer.values() for entry in (c, (c.get("control") or {}).get("with_vs_control"))
+             if entry is not None]
+    family = sum(t.get("p_value") is not None for t in tests)
+    for test, adjusted in zip(tests, holm([t.get("p_value") for t in tests]), strict=True):
+        test["p_holm"] = adjusted
+        test["family_tests"] = family
 
 
 def _comparison(experiment: Experiment, comparison: ComparisonSpec, results: dict[str, Any],
