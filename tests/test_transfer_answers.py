@@ -47,3 +47,16 @@ def test_the_er_te_row_says_the_control_explains_it_and_counts_the_tests() -> No
     assert "the transfer runs end worse (97.7 vs" in row
     w_tw = next(line for line in text.splitlines() if line.startswith("| w_tw:"))
     assert "no significant difference at 5 % (Holm p)" in w_tw and "control" not in w_tw
+
+
+def test_each_seed_is_described_by_what_it_did() -> None:
+    from sitl_bridge.rl.experiments.report import seed_story
+
+    def seed(n: int, success: float, reached: int | None, last: float | None) -> dict:
+        return {"seed": n, "greedy_success": success, "episodes_to_90": reached, "last_eval_success": last}
+
+    # the thesis setup's TW: seed 0 never learned, seeds 1-2 had good episodes but never held 90 %
+    assert seed_story([seed(0, 0.08, None, 0.05), seed(1, 0.30, None, 0.2), seed(2, 0.80, None, 0.5)]) == (
+        "seed 0: never learned (8 %); seeds 1-2: partly learned, never 90 % (30, 80 %)")
+    assert seed_story([seed(0, 1.0, 50, 1.0), seed(1, 0.9, 60, 0.5), seed(2, 1.0, 40, 0.95)]) == (
+        "seeds 0, 2: learned, held 90 %; seed 1: learned, then fell (last evaluation) (50 %)")

@@ -178,12 +178,45 @@ def _thesis_table(results: dict[str, Any]) -> list[str]:
         return []
     lines = ["What the thesis reported beside ours: it gives no success rates, only whether learning "
              "was stable, from one or two runs per scenario, and the behaviour it found (action codes, "
-             "its Table 2).", "",
-             "| scenario | thesis | result | runs | behaviour found | source |", "|---|---|---|---|---|---|"]
+             "its Table 2). Its verdict is about its runs; the last column says what each of our seeds did "
+             f"(learned: a periodic evaluation reached {100 * THRESHOLD:.0f} %; held: still there at the end; "
+             f"never learned: its best checkpoint under {100 * NEVER_LEARNED:.0f} % greedy success).", "",
+             "| scenario | thesis | result | runs | behaviour found | source | our seeds |",
+             "|---|---|---|---|---|---|---|"]
     for stem, t in rows:
         lines.append(f"| `{stem}` | {_cell(t.get('shorthand', '-'))} | {_cell(t.get('result', 'not in the thesis'))} "
-                     f"| {_cell(t.get('runs', '-'))} | {_cell(t.get('behaviour', '-'))} | {_cell(t.get('source', '-'))} |")
+                     f"| {_cell(t.get('runs', '-'))} | {_cell(t.get('behaviour', '-'))} | {_cell(t.get('source', '-'))} "
+                     f"| {_cell(seed_story(results[stem]['seeds']))} |")
     return lines + [""]
+
+
+NEVER_LEARNED = 0.2
+"""Greedy success of a seed's best checkpoint below which it is said never to have learned."""
+
+
+def seed_story(seeds: list[dict[str, Any]]) -> str:
+    """What each seed did, seeds with the same outcome together: `seed 0: never learned (8 %);
+    seeds 1, 2: partly learned, never 90 % (30, 80 %)`."""
+    groups: dict[str, list[tuple[int, str]]] = {}
+    for s in seeds:
+        last = s.get("last_eval_success")
+        if s.get("episodes_to_90") is not None:
+            if last is None or last >= THRESHOLD:
+                kind, value = f"learned, held {100 * THRESHOLD:.0f} %", None
+            else:
+                kind, value = "learned, then fell (last evaluation)", last
+        elif s["greedy_success"] < NEVER_LEARNED:
+            kind, value = "never learned", s["greedy_success"]
+        else:
+            kind, value = f"partly learned, never {100 * THRESHOLD:.0f} %", s["greedy_success"]
+        groups.setdefault(kind, []).append((s["seed"], "" if value is None else f"{100 * value:.0f}"))
+    parts = []
+    for kind, members in groups.items():
+        numbers = [str(seed) for seed, _ in members]
+        values = [v for _, v in members if v]
+        label = f"seed {numbers[0]}" if len(numbers) == 1 else f"seeds {_seed_text([m[0] for m in members])}"
+        parts.append(f"{label}: {kind}" + (f" ({', '.join(values)} %)" if values else ""))
+    return "; ".join(parts) or "not run"
 
 
 def _figures(results: dict[str, Any]) -> list[str]:
