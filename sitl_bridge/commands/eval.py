@@ -69,6 +69,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     apart = separation(traces)
+    print(args.episode_set, file=sys.stderr)
     if args.json:
         print(json.dumps({**result.to_dict(), "episode_seed": args.seed, "separation": apart.to_dict()}, indent=2))
     else:
@@ -77,14 +78,15 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _episode_set(args: argparse.Namespace, base: int, what: str, run_seed: int = 0) -> None:
-    """Set `args.seed` to the default set unless given, and say on stderr which set flies."""
+    """Set `args.seed` to the default set unless given, and `args.episode_set` to the line that
+    says which set flew (printed on stderr after the result: a bad input stays one line)."""
     from sitl_bridge.rl.experiments.seeds import seed_set
 
-    if args.seed is None:
+    given = args.seed is not None
+    if not given:
         args.seed = seed_set(base, run_seed)
-        print(f"episodes: reset seeds eval_seeds({args.seed}, {args.episodes}), {what}", file=sys.stderr)
-    else:
-        print(f"episodes: reset seeds eval_seeds({args.seed}, {args.episodes}) (--seed)", file=sys.stderr)
+    args.episode_set = (f"episodes: reset seeds eval_seeds({args.seed}, {args.episodes}), "
+                        + ("given by --seed" if given else what))
 
 
 def _run_seed(checkpoint: str) -> int | None:
