@@ -61,3 +61,19 @@ def test_eval_policy_orca_prints_success_and_separation(capsys: pytest.CaptureFi
     assert result["episode_seed"] == EVAL_SEED_BASE and "eval_seeds(1000000, 2)" in captured.err
     assert cli(["eval", "--policy", "orca", "--episodes", "1"]) == 2
     assert "needs --world" in capsys.readouterr().err
+
+
+def test_a_move_into_a_wall_of_the_map_is_never_chosen() -> None:
+    policy = orca_policy(REPO / "worlds" / "two_drones_window.yaml")
+    layout = policy.layout
+    obs = np.zeros(policy.scenario.task.observation_size)
+    obs[layout["position"]] = [-3.0, -4.0, 5.0]  # 1 m inside the west wall of the south yard
+    obs[layout["own_id"]] = 0
+    obs[layout["goal_position"]] = [0.0, 4.0, 5.0]
+    moves = policy.action_velocities(obs)
+    clear = policy.clear_moves(obs, moves)
+    assert not clear[1] and clear[0] and clear[7]  # west into the wall: no; east, hover: yes
+    # ORCA's wish pointing west still flies a clear code
+    wanted = np.array([-1.0, 0.0, 0.0])
+    assert choose_action(wanted, [], moves, 1.0, clear) != 1
+    assert choose_action(wanted, [], moves, 1.0) == 1

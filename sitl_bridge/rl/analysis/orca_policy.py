@@ -13,8 +13,10 @@ Per decision, one drone, no central planner and no messages:
    (reciprocal, half of the avoidance each);
 3. the scenario's discrete actions: of the action codes whose velocity (`envs.actions`, the
    velocity the env flies for that code and drone) lies inside every ORCA half-plane, the one
-   nearest ORCA's velocity; when none does, the nearest of all. With continuous actions step 3 is
-   the identity: fly `OrcaPolicy.velocity(obs)`.
+   nearest ORCA's velocity; when none does, the nearest of all. Codes whose step would end in a
+   static obstacle on the drone's map (at its end or half a step beyond) are left out (ORCA here
+   avoids drones, not walls). With
+   continuous actions step 3 is the identity: fly `OrcaPolicy.velocity(obs)`.
 
 The observation must hold `position`, `velocity`, `own_id` (which drone: its goal, its action
 mapping) and `transponder`; the goal comes from `goal_position` when observed, else from the world
@@ -40,6 +42,8 @@ from sitl_bridge.world.layout import GoalPlacement, realize
 
 NEEDED = ("position", "velocity", "own_id", "transponder")
 """Observation features the ORCA policy reads."""
+OVERSHOOT = 1.5
+"""A move is clear when the map is free at its step's end and this many steps along it."""
 
 
 @dataclass(frozen=True)
@@ -141,12 +145,30 @@ class OrcaPolicy:
                                                     start_enu_m=start, goal_enu_m=goal))
                          for code in range(len(ACTION_NAMES_BY_FRAME["world"]))])
 
+    def clear_moves(self, obs: np.ndarray, moves: np.ndarray) -> np.ndarray:
+        """Per move, whether its step ends clear of the static obstacles on the drone's map: the
+        nearest node of the path grid free (outside every obstacle grown by the path clearance)
+        at the step's end and half a step beyond it (the drone does not stop dead)."""
+        obs = np.asarray(obs, dtype=float).reshape(-1)
+        position = self._block(obs, "position")
+        occ = self._field(self._goal(obs, self._drone(obs))).occupancy
+        clear = np.ones(len(moves), dtype=bool)
+        for reach in (1.0, OVERSHOOT):
+            index = np.rint((position + reach * moves * self.action.duration_s - occ.origin_m)
+                            / occ.grid.cell_m).astype(int)
+            inside = np.all((index >= 0) & (index < np.array(occ.shape)), axis=1)
+            index = np.clip(index, 0, np.array(occ.shape) - 1)
+            clear &= inside & occ.free[index[:, 0], index[:, 1], index[:, 2]]
+        return clear
+
     def __call__(self, obs: np.ndarray) -> int:
         wanted, planes = self.velocity(obs)
-        return choose_action(wanted, planes, self.action_velocities(obs), self.action.speed_m_s)
+        moves = self.action_velocities(obs)
+        return choose_action(wanted, planes, moves, self.action.speed_m_s, self.clear_moves(obs, moves))
 
 
-def choose_action(wanted: np.ndarray, planes: list[HalfPlane], candidates: np.ndarray, speed: float) -> int:
+def choose_action(wanted: np.ndarray, planes: list[HalfPlane], candidates: np.ndarray, speed: float,
+                  clear: np.ndarray | None = None) -> int:
     """The action code (row of `candidates`, ENU m/s) that flies ORCA's velocity `wanted` best.
 
     Only codes inside every half-plane (horizontally) are considered while any is; of those, when
@@ -154,11 +176,14 @@ def choose_action(wanted: np.ndarray, planes: list[HalfPlane], candidates: np.nd
     broken to the right of it (both drones of a head-on pair then pass on their right); when it
     wants to nearly stop, the nearest. With none inside, the nearest of all. Pointing rather than
     nearest because the codes move at full speed: a sidestep is then further from a slightly
-    deflected velocity than hovering is, and nearest alone would hover in front of every conflict."""
+    deflected velocity than hovering is, and nearest alone would hover in front of every conflict.
+    `clear` (per code; default all): codes whose step ends clear of static obstacles; the others
+    are never chosen (ORCA here knows only drones, the map knows the walls), unless none is clear."""
     distance = np.linalg.norm(candidates - wanted, axis=1)
-    allowed = np.array([all(plane.violation(c[:2]) <= 1e-9 for plane in planes) for c in candidates])
+    clear = np.ones(len(candidates), dtype=bool) if clear is None or not np.any(clear) else np.asarray(clear)
+    allowed = clear & np.array([all(plane.violation(c[:2]) <= 1e-9 for plane in planes) for c in candidates])
     if not allowed.any():
-        return int(np.argmin(distance))
+        return int(np.argmin(np.where(clear, distance, np.inf)))
     norm = float(np.linalg.norm(wanted))
     if norm < 0.5 * speed:
         return int(np.argmin(np.where(allowed, distance, np.inf)))
