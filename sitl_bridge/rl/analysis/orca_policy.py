@@ -15,8 +15,8 @@ Per decision, one drone, no central planner and no messages:
    velocity the env flies for that code and drone) lies inside every ORCA half-plane, the one
    nearest ORCA's velocity; when none does, the nearest of all. Codes whose step would end in a
    static obstacle on the drone's map (at its end or half a step beyond) are left out (ORCA here
-   avoids drones, not walls). With
-   continuous actions step 3 is the identity: fly `OrcaPolicy.velocity(obs)`.
+   avoids drones, not walls). With continuous actions step 3 is the identity: fly
+   `OrcaPolicy.velocity(obs)`.
 
 The observation must hold `position`, `velocity`, `own_id` (which drone: its goal, its action
 mapping) and `transponder`; the goal comes from `goal_position` when observed, else from the world
