@@ -10,6 +10,7 @@ import pytest
 import torch
 from test_rl_helpers import corridor_factory, tiny_config
 
+from sitl_bridge.errors import ConfigError
 from sitl_bridge.rl.learner.config import TrainConfig
 from sitl_bridge.rl.learner.dqn import (
     Batch,
@@ -19,6 +20,7 @@ from sitl_bridge.rl.learner.dqn import (
     dueling_q,
     td_targets,
 )
+from sitl_bridge.rl.learner.dqn_learner import DQNLearner
 from sitl_bridge.rl.learner.normalizer import RunningNorm
 from sitl_bridge.rl.learner.nstep import NStepFolder, Step
 from sitl_bridge.rl.learner.prioritized import (
@@ -119,6 +121,29 @@ def test_per_sampling_follows_priorities_and_updates() -> None:
     assert float(batch.weights.max()) == pytest.approx(1.0)
 
 
+def test_per_sampling_draws_bit_for_bit_what_numpy_choice_drew() -> None:
+    """The cached powers and the inlined draw give exactly the slots and weights of the plain
+    formula: the power of every priority, then rng.choice(p=...)."""
+    pri = Priorities(500, alpha=0.6, epsilon=1e-3)
+    data = np.random.default_rng(7)
+    rng, reference_rng = np.random.default_rng(3), np.random.default_rng(3)
+    filled = 0
+    for _ in range(60):
+        added = data.integers(1, 40)
+        pri.added((filled + np.arange(added)) % 500)
+        filled = min(filled + added, 500)
+        slots, weights = pri.sample(filled, 64, 0.4, rng)
+        probabilities = sampling_probabilities(pri.values[:filled], 0.6)
+        expected = reference_rng.choice(filled, size=64, p=probabilities)
+        assert np.array_equal(slots, expected)
+        assert np.array_equal(weights, importance_weights(probabilities, expected, 0.4))
+        pri.update(slots, data.normal(scale=data.uniform(0.01, 30.0), size=64))  # duplicates included
+    restored = Priorities(500, alpha=0.6, epsilon=1e-3)
+    restored.restore(pri.values.copy(), pri.max_priority)
+    assert np.array_equal(restored.sample(filled, 64, 0.4, np.random.default_rng(1))[0],
+                          pri.sample(filled, 64, 0.4, np.random.default_rng(1))[0])
+
+
 def test_importance_weights_scale_the_loss() -> None:
     from sitl_bridge.rl.learner.dqn import dqn_loss_and_errors
 
@@ -190,3 +215,34 @@ def test_run_with_every_option_resumes_exactly(tmp_path: Path) -> None:
     a, b = read_run_records(ref.run_dir), read_run_records(resumed.run_dir)
     keys = ("episode", "drone", "actions", "reward", "mean_loss", "global_step")
     assert [[r[k] for k in keys] for r in a] == [[r[k] for k in keys] for r in b]
+
+
+# --- how often the learner updates --------------------------------------------------------------
+def _learner_with_rows(rows: int, **config: object) -> DQNLearner:
+    cfg = TrainConfig(batch_size=4, replay_capacity=100, layers=2, hidden_units=8, **config)
+    torch.manual_seed(0)
+    learner = DQNLearner(NetworkShape(3, 2, 2, 8), cfg, torch.device("cpu"), np.random.default_rng(0))
+    data = np.random.default_rng(1)
+    learner.remember(learner.replay.make_rows(data.normal(size=(rows, 3)), data.integers(0, 2, rows),
+                                              data.normal(size=rows), data.normal(size=(rows, 3)), np.zeros(rows)))
+    return learner
+
+
+@pytest.mark.parametrize(("train_every", "gradient_steps", "step_batches", "expected"), [
+    (1, 1, [1, 1, 1], 3), (3, 1, [1, 1, 1, 1, 1, 1, 1], 2), (2, 3, [5, 1], 9), (4, 2, [3, 3, 3], 4)])
+def test_updates_follow_train_every_and_gradient_steps(train_every: int, gradient_steps: int,
+                                                       step_batches: list[int], expected: int) -> None:
+    learner = _learner_with_rows(10, train_every=train_every, gradient_steps=gradient_steps)
+    losses: list[float] = []
+    for steps in step_batches:  # a vector step counts several env steps at once
+        learner.after_steps(steps, losses)
+    assert learner.updates == expected == len(losses)
+
+
+def test_no_update_before_the_replay_holds_a_batch() -> None:
+    learner = _learner_with_rows(3, gradient_steps=4)
+    losses: list[float] = []
+    learner.after_steps(5, losses)
+    assert learner.updates == 0 and learner.global_step == 5
+    with pytest.raises(ConfigError, match="gradient_steps"):
+        learner.config.replace(gradient_steps=0)

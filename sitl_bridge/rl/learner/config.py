@@ -82,7 +82,10 @@ class TrainConfig:
     learning_starts: int = 0
     """Transitions collected before the first update (at least batch_size)."""
     train_every: int = 1
-    """One gradient update every this many environment steps."""
+    """Gradient updates are due every this many environment steps (each drone's and each copy's
+    step counts); raise it to spend less of a run in the learner."""
+    gradient_steps: int = 1
+    """Gradient updates made each time updates are due (every train_every env steps)."""
     num_envs: int = 1
     """Copies of the scenario flown at once (sitl_bridge.make_vec_env, single-drone scenarios):
     episodes run in waves of this many, one network call picks all their actions, and each wave
@@ -132,7 +135,7 @@ class TrainConfig:
     success_window: int = 100
     """Episodes in the rolling success rate of the progress bar and plots."""
     torch_threads: int = 1
-    """CPU threads torch may use (keep 1 when several runs share a machine)."""
+    """CPU threads torch may use (keep 1 when several runs share a machine; rl/learner/torch_threads.py)."""
     device: str = "cpu"
     """Torch device: cpu, cuda or auto (cuda when present)."""
 
@@ -167,6 +170,7 @@ class TrainConfig:
             ("batch_size", 1 <= self.batch_size <= 65536, "an integer in [1, 65536]"),
             ("learning_starts", 0 <= self.learning_starts <= MAX_REPLAY_ROWS, f"an integer in [0, {MAX_REPLAY_ROWS}]"),
             ("train_every", 1 <= self.train_every <= 100_000, "an integer in [1, 100000]"),
+            ("gradient_steps", 1 <= self.gradient_steps <= 1000, "an integer in [1, 1000]"),
             ("num_envs", 1 <= self.num_envs <= 1024, "an integer in [1, 1024]"),
             ("target_update_period", 1 <= self.target_update_period <= 10_000_000, "an integer in [1, 10000000]"),
             ("target_update_unit", self.target_update_unit in TARGET_UPDATE_UNITS, "steps or episodes"),

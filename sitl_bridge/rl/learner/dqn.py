@@ -195,7 +195,7 @@ class DQNAgent:
 
     def q_values(self, obs: np.ndarray) -> np.ndarray:
         """Q values of one observation (or a batch of them)."""
-        with torch.no_grad():
+        with torch.inference_mode():  # no autograd bookkeeping at all (acting never backpropagates)
             tensor = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device)
             return self.online(tensor).cpu().numpy()
 

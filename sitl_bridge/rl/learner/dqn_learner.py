@@ -92,17 +92,19 @@ class DQNLearner:
         self.replay.add_rows(rows)
 
     def after_steps(self, steps: int, losses: list[float]) -> None:
-        """Count `steps` env transitions and make the DQN updates due for them: one every
-        `train_every` steps once the replay holds enough rows (losses appended to `losses`)."""
+        """Count `steps` env transitions and make the DQN updates due for them: `gradient_steps`
+        every `train_every` steps once the replay holds enough rows (losses appended to `losses`)."""
         config = self.config
         before = self.global_step
         self.global_step += steps
-        for step in range(before + 1, self.global_step + 1):
-            if len(self.replay) >= max(config.batch_size, config.learning_starts) and step % config.train_every == 0:
-                losses.append(self._learn_step())
-                self.updates += 1
-                if config.target_update_unit == "steps" and self.updates % config.target_update_period == 0:
-                    self.agent.align_target()
+        if len(self.replay) < max(config.batch_size, config.learning_starts):
+            return
+        due = self.global_step // config.train_every - before // config.train_every
+        for _ in range(due * config.gradient_steps):
+            losses.append(self._learn_step())
+            self.updates += 1
+            if config.target_update_unit == "steps" and self.updates % config.target_update_period == 0:
+                self.agent.align_target()
 
     def end_episodes(self, count: int) -> None:
         """`count` episodes ended (one, or a wave's); the target network follows per episode when

@@ -21,6 +21,7 @@ from sitl_bridge.rl.common.drones_env import DronesEnv, EnvFactory
 from sitl_bridge.rl.learner.config import TrainConfig
 from sitl_bridge.rl.learner.dqn import DQNAgent, NetworkShape, dqn_loss
 from sitl_bridge.rl.learner.replay_buffer import ReplayBuffer, rows_to_batch
+from sitl_bridge.rl.learner.torch_threads import use_torch_threads
 
 DEFAULT_RATES = tuple(float(f"{10 ** (-k / 2):.3g}") for k in range(2, 15))
 """0.1, 0.0316, 0.01, ... 1e-7 (half decades)."""
@@ -119,7 +120,7 @@ def probe(env_factory: EnvFactory, config: TrainConfig, *, batches: int = 5, epo
           rates: tuple[float, ...] = DEFAULT_RATES, seed: int = 0, stop_after_safe: int = 2) -> ProbeResult:
     """Run the probe: collect `batches` batches of random experience, then try `rates` from the
     highest; stop once `stop_after_safe` rates in a row converged."""
-    torch.set_num_threads(config.torch_threads)
+    use_torch_threads(config.torch_threads)
     env = DronesEnv(env_factory(seed))
     try:
         rows = collect_random(env, batches * config.batch_size, seed)

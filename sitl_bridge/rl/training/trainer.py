@@ -54,6 +54,7 @@ from sitl_bridge.rl.learner.config import TrainConfig
 from sitl_bridge.rl.learner.dqn import NetworkShape
 from sitl_bridge.rl.learner.dqn_learner import DQNLearner
 from sitl_bridge.rl.learner.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
+from sitl_bridge.rl.learner.torch_threads import use_torch_threads
 from sitl_bridge.rl.training import run_dir as rd
 from sitl_bridge.rl.training.early_end import EarlyEndWatch
 from sitl_bridge.rl.training.episode_tally import EpisodeTally
@@ -115,7 +116,7 @@ class Trainer:
         self.config = config
         self.progress = progress
         self.warn = warn or (lambda msg: print(f"warning: {msg}", file=sys.stderr))
-        torch.set_num_threads(config.torch_threads)
+        use_torch_threads(config.torch_threads)
         self.device = resolve_device(config.device)
 
         self.collector: VectorCollector | None = None
@@ -323,8 +324,8 @@ class Trainer:
         torch.set_rng_state(tensors["rng.torch"])
         self.replay.restore(rows, state["replay"]["total_rows"])
         if self.replay.priorities is not None and "replay.priorities" in tensors:
-            self.replay.priorities.values[:] = tensors["replay.priorities"].numpy()
-            self.replay.priorities.max_priority = float(tensors["replay.max_priority"])
+            self.replay.priorities.restore(tensors["replay.priorities"].numpy(),
+                                           float(tensors["replay.max_priority"]))
         self.episode_log.truncate(state["log_bytes"])
         self.episode = state["episode"]
         self.global_step = state["global_step"]
