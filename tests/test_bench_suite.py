@@ -3,6 +3,7 @@ the bench's business, never a unit test's)."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
@@ -27,7 +28,8 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     assert result["px4"] == result["px4_standby"] == result["px4_parallel"] == {"skipped": "PX4_BIN not set"}
     bare = result["physics"]["rtf"]["median"]
     assert bare > 0 and result["physics"]["fraction_of_bare"]["median"] == 1.0
-    for key in ("direct", "direct_ground_truth", "decision_0_1s", "batched", "stub", "train_steps_per_s"):
+    for key in ("direct", "direct_ground_truth", "decision_0_1s", "batched", "stub", "train_steps_per_s",
+                "train_vector_steps_per_s"):
         entry = result[key]
         assert set(entry["rtf"]) == {"median", "min", "max"}, key
         assert entry["rtf"]["min"] <= entry["rtf"]["median"] <= entry["rtf"]["max"], key
@@ -36,6 +38,24 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     assert result["decision_0_1s"]["of_direct"] == (result["decision_0_1s"]["fraction_of_bare"]["median"]
                                                     / result["direct"]["fraction_of_bare"]["median"])
     assert result["train_steps_per_s"]["updates"] > 0  # DQN updates were part of the timing
+    vector = result["train_vector_steps_per_s"]
+    assert vector["updates"] > 0 and vector["num_envs"] > 1
+    # batched at every N of the size, each as a fraction of the bare loop measured next to it
+    by_n = result["batched"]["by_num_envs"]
+    assert sorted(by_n, key=int) == [str(n) for n in SIZES["smoke"].batched_num_envs]
+    for n, entry in by_n.items():
+        assert entry["num_envs"] == int(n) and entry["reps"] == SIZES["smoke"].reps
+        assert entry["fraction_of_bare"]["median"] == entry["rtf"]["median"] / result["batched"]["bare_rtf_adjacent"]
+    assert result["batched"]["rtf"] == by_n[str(SIZES["smoke"].num_envs)]["rtf"]
+    # other simulators: measured when they import, else skipped with the reason (never installed)
+    for key, module in (("gym_pybullet_drones", "gym_pybullet_drones"), ("pyflyt", "PyFlyt")):
+        if importlib.util.find_spec(module) is None:
+            assert result[key] == {"skipped": f"{module} not installed (pip install {module.replace('_', '-')} "
+                                              "to measure it)"}
+        else:
+            assert result[key]["rtf"]["median"] > 0
+            assert result[key]["fraction_of_bare"]["median"] == (result[key]["rtf"]["median"]
+                                                                 / result[key]["bare_rtf_adjacent"])
     assert set(result["reset_s"]) == {"direct", "stub"}
     for key in ("direct", "stub"):  # each reset after an ended episode of the random flight, timed
         resets = result[key]["episode_reset_s"]
@@ -47,6 +67,17 @@ def test_bench_smoke_json_has_every_key(tmp_path, monkeypatch) -> None:
     # the stub runs in this process: its CPU time per env step is all here
     cpu = result["stub"]["cpu_ms_per_step"]
     assert cpu["this_process"] > 0 and cpu["total"] == cpu["this_process"] + cpu["children"]
+
+
+def test_scale_lengthens_every_new_case() -> None:
+    from sitl_bridge.bench.suite import SIZES
+
+    quick, longer = SIZES["quick"], SIZES["quick"].scaled(3.0)
+    assert longer.sim_s == 3 * quick.sim_s and longer.peer_sim_s == 3 * quick.peer_sim_s
+    assert longer.batched_steps == 3 * quick.batched_steps and longer.train_episodes == 3 * quick.train_episodes
+    assert longer.batched_num_envs == quick.batched_num_envs == (1, 4, 16, 64)
+    with pytest.raises(ValueError, match="--scale"):
+        quick.scaled(0.0)
 
 
 def test_cpu_time_counts_live_grandchildren() -> None:

@@ -15,7 +15,10 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   (`obstacle_continuous.yaml`: random `Box(-1, 1)` velocity actions, one every 0.1 s of
   simulated time, ten times the decisions of `direct`'s 1 s); `of_direct` is its fraction of
   bare divided by `direct`'s (the per-decision overhead's cost; 1 = none).
-* `batched`: `make_vec_env(num_envs=N)` of the same scenario, aggregate over the N copies.
+* `batched`: `make_vec_env(num_envs=N)` of the same scenario, random actions, aggregate over
+  the N copies, at N = `Size.num_envs` (16); `by_num_envs` holds every N of
+  `Size.batched_num_envs` (1, 4, 16, 64), each timed over `Size.batched_steps` vector steps
+  per repetition (each its own real-time factor and fraction of bare).
 * `stub`: one env on the full protocol path (HIL TCP + stub + MAVLink UDP + MAVSDK), speed 0.
 * `px4`: the same with real PX4 when `PX4_BIN` is set, else `{"skipped": reason}`;
   `episode_starts`: of the episodes that ended in the timed repetitions, how many the next
@@ -30,8 +33,13 @@ or differently loaded machines compare. Keys of the JSON file (`KEYS`):
   (the `reset()` after it): count, median, p95, max over at least `Size.episode_resets` ended
   episodes, warm-up and timed repetitions included (the flight goes on after them until
   there are that many).
-* `train_steps_per_s`: DQN training env steps per wall second, updates included (thesis O
-  settings from worlds/obstacle.yaml, no evaluation), with its real-time factor.
+* `train_steps_per_s`: DQN training env steps per wall second, updates included (O's settings
+  from worlds/obstacle.yaml, one env, no evaluation), with its real-time factor and `updates`;
+  `train_vector_steps_per_s`: the same with `num_envs` copies at once (bench/training.py).
+* `gym_pybullet_drones`, `pyflyt`: those simulators' standard set-ups (bench/peers.py), measured
+  in the same run only when they import, else `{"skipped": reason}` (never installed here).
+`--scale X` multiplies every case's simulated seconds, episodes and vector steps (longer,
+steadier figures); the default sizes keep each case short.
 * `parallel`: `direct` envs in 1 and 2 worker processes, aggregate real-time factor and the
   speed-up from 1 to 2 workers (about 2 on two idle cores); `bare_speedup_2_over_1`, the same
   for the bare pybullet loop (what the machine's cores give two CPU-bound processes), and
@@ -53,15 +61,15 @@ import multiprocessing as mp
 import os
 import platform
 import statistics
-import tempfile
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from sitl_bridge.bench import peers
 from sitl_bridge.bench.physics import STEP_US, bare_pybullet_rtf, bare_world
 from sitl_bridge.cores import pin_to_own_core, pins_workers
 from sitl_bridge.data_paths import worlds_dir
@@ -70,8 +78,9 @@ from sitl_bridge.physics.bullet import p
 SCENARIO = "obstacle.yaml"
 CONTINUOUS_SCENARIO = "obstacle_continuous.yaml"
 """`decision_0_1s`'s scenario: `SCENARIO` with continuous velocity actions every 0.1 s."""
-KEYS = ("physics", "direct", "direct_ground_truth", "decision_0_1s", "batched", "stub", "px4", "px4_standby", "reset_s",
-        "train_steps_per_s", "parallel", "px4_parallel")
+KEYS = ("physics", "direct", "direct_ground_truth", "decision_0_1s", "batched", "stub", "px4", "px4_standby",
+        "reset_s", "train_steps_per_s", "train_vector_steps_per_s", "gym_pybullet_drones", "pyflyt", "parallel",
+        "px4_parallel")
 
 
 @dataclass(frozen=True)
@@ -92,12 +101,30 @@ class Size:
     """Wall seconds of each of `parallel`'s `reps` timed windows (all workers run the whole window)."""
     px4_parallel_window_s: float
     """The same for `px4_parallel`."""
+    batched_num_envs: tuple[int, ...]
+    """The N of `batched`'s `by_num_envs`."""
+    batched_steps: int
+    """Vector steps per timed repetition of each N (N env steps each)."""
+    peer_sim_s: float
+    """Simulated seconds per repetition of each peer simulator."""
+
+    def scaled(self, factor: float) -> Size:
+        """This size with every case's simulated seconds, episodes and vector steps times `factor`."""
+        if not factor > 0:
+            raise ValueError(f"bench --scale: expected a positive number, got {factor!r}")
+        return replace(self, sim_s=self.sim_s * factor, bare_s=self.bare_s * factor,
+                       train_episodes=max(1, round(self.train_episodes * factor)),
+                       batched_steps=max(1, round(self.batched_steps * factor)),
+                       peer_sim_s=self.peer_sim_s * factor,
+                       parallel_window_s=self.parallel_window_s * factor,
+                       px4_parallel_window_s=self.px4_parallel_window_s * factor)
 
 
 SIZES = {
-    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 50, 40, 5.0, 15.0),
-    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 10, 12, 2.0, 6.0),
-    "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 1, 2, 0.1, 0.5),  # for the test: seconds, figures meaningless
+    "full": Size("full", 100.0, 5, 10.0, 100.0, 16, 10, 50, 40, 5.0, 15.0, (1, 4, 16, 64), 4, 60.0),
+    "quick": Size("quick", 30.0, 3, 5.0, 50.0, 16, 5, 10, 12, 2.0, 6.0, (1, 4, 16, 64), 2, 20.0),
+    # for the test: seconds, figures meaningless
+    "smoke": Size("smoke", 1.0, 2, 1.0, 2.0, 2, 2, 1, 2, 0.1, 0.5, (1, 2), 1, 0.5),
 }
 
 
@@ -249,55 +276,63 @@ def _env_case(backend: str, size: Size, bare: float, estimator: str = "sensors",
                       steps_per_s=_spread([rtf / step.step_s for rtf in rtfs]), **extra), resets
 
 
-def _batched_case(size: Size, bare: float) -> dict[str, Any]:
+def _batched_rtfs(num_envs: int, vector_steps: int, reps: int) -> list[float]:
+    """Aggregate real-time factor of `make_vec_env(num_envs)` with random actions, one per
+    repetition of `vector_steps` vector steps (after one warm-up step)."""
     from sitl_bridge.envs.vector import make_vec_env
 
-    venv = make_vec_env(_scenario(), num_envs=size.num_envs, seed=0)
+    venv = make_vec_env(_scenario(), num_envs=num_envs, seed=0)
     rng = np.random.default_rng(0)
-    step_s = venv.envs[0].unwrapped.scenario.task.action.step_s * size.num_envs
+    step_s = venv.envs[0].unwrapped.scenario.task.action.step_s * num_envs
 
     def step() -> float:
-        venv.step(rng.integers(8, size=size.num_envs))
+        venv.step(rng.integers(8, size=num_envs))
         return step_s
 
     try:
         venv.reset(seed=0)
-        _fly(step, size.warmup_s * size.num_envs)
-        rtfs = [_fly(step, size.sim_s * size.num_envs) for _ in range(size.reps)]
+        step()
+        return [_fly(step, vector_steps * step_s) for _ in range(reps)]
     finally:
         venv.close()
-    return _rtf_entry(rtfs, bare, num_envs=size.num_envs, design="SyncVectorEnv of SitlEnv (one client each)")
+
+
+def _batched_case(size: Size, bare: float) -> dict[str, Any]:
+    design = "SyncVectorEnv of SitlEnv (one client each)"
+    by_n = {str(n): _rtf_entry(_batched_rtfs(n, size.batched_steps, size.reps), bare, num_envs=n,
+                               vector_steps=size.batched_steps)
+            for n in sorted({*size.batched_num_envs, size.num_envs})}
+    headline = by_n[str(size.num_envs)]
+    return {**headline, "design": design, "by_num_envs": by_n}
+
+
+def _train_entry(rates: list[float], updates: int, bare: float, **extra: Any) -> dict[str, Any]:
+    entry: dict[str, Any] = {"steps_per_s": _spread(rates), "reps": len(rates), "updates": updates, **extra}
+    entry["rtf"] = {k: v * _step_s() for k, v in entry["steps_per_s"].items()}
+    entry["fraction_of_bare"] = {k: v / bare for k, v in entry["rtf"].items()}
+    return entry
 
 
 def _train_case(size: Size, bare: float) -> dict[str, Any]:
-    """DQN env steps per wall second with O's `train:` settings (updates every step)."""
-    from sitl_bridge.rl.common.drones_env import scenario_env_factory
-    from sitl_bridge.rl.learner.config import load_train_config
-    from sitl_bridge.rl.training.run_dir import RunSpec
-    from sitl_bridge.rl.training.trainer import Trainer
+    """DQN env steps per wall second with O's `train:` settings (updates every step), one env."""
+    from sitl_bridge.bench.training import train_rates
 
-    world = str(_scenario())
-    step_s = _step_s()
-    config = load_train_config(world, {"eval_every": 0})  # O as shipped, no evaluation pauses
-    rates = []
-    with tempfile.TemporaryDirectory(prefix="sitl-bench-") as out, \
-            Trainer.start(out, RunSpec(world=world, autopilot="direct", seed=0), config,
-                          scenario_env_factory(world, "direct"), progress=False) as trainer:
-        trainer.run_episode()  # warm-up (network, replay, env start) ...
-        for _ in range(500):  # ... until updates run: the timed episodes include them
-            if trainer.updates:
-                break
-            trainer.run_episode()
-        for _ in range(size.reps):
-            steps0, t0 = trainer.global_step, time.perf_counter()
-            for _ in range(max(1, size.train_episodes // size.reps)):
-                trainer.run_episode()
-            rates.append((trainer.global_step - steps0) / (time.perf_counter() - t0))
-        updates = trainer.updates
-    entry: dict[str, Any] = {"steps_per_s": _spread(rates), "reps": len(rates), "updates": updates}
-    entry["rtf"] = {k: v * step_s for k, v in entry["steps_per_s"].items()}
-    entry["fraction_of_bare"] = {k: v / bare for k, v in entry["rtf"].items()}
-    return entry
+    return _train_entry(*train_rates(_scenario(), size.train_episodes, size.reps), bare, num_envs=1)
+
+
+def _train_vector_case(size: Size, bare: float) -> dict[str, Any]:
+    """The same with `VECTOR_ENVS` copies flown at once."""
+    from sitl_bridge.bench.training import VECTOR_ENVS, train_rates
+
+    rates, updates = train_rates(_scenario(), size.train_episodes, size.reps, VECTOR_ENVS)
+    return _train_entry(rates, updates, bare, num_envs=VECTOR_ENVS)
+
+
+def _peer_case(key: str, size: Size, bare: float) -> dict[str, Any]:
+    from sitl_bridge.bench.peers import MEASURE
+
+    rtfs, about = MEASURE[key](size.peer_sim_s, size.warmup_s, size.reps)
+    return _rtf_entry(rtfs, bare, **about)
 
 
 def _fly_windows(step: Callable[[], float], windows: int, window_s: float, barrier, results,
@@ -462,13 +497,18 @@ def measure(size: Size, log: Callable[[str], None] = print) -> dict[str, Any]:
         ("px4", lambda bare: _env_case("px4", size, bare, px4_bin=px4_bin)),
         ("px4_standby", lambda bare: _env_case("px4", size, bare, px4_bin=px4_bin, standby=True)),
         ("train_steps_per_s", lambda bare: _train_case(size, bare)),
+        ("train_vector_steps_per_s", lambda bare: _train_vector_case(size, bare)),
+        ("gym_pybullet_drones", lambda bare: _peer_case("gym_pybullet_drones", size, bare)),
+        ("pyflyt", lambda bare: _peer_case("pyflyt", size, bare)),
         ("parallel", lambda bare: _parallel_case(size, bare)),
         ("px4_parallel", lambda bare: _px4_parallel_case(size, bare, px4_bin or "")),
     ]
     for key, case in cases:
-        if key.startswith("px4") and not px4_bin:
-            result[key] = {"skipped": "PX4_BIN not set"}
-            log(f"  {key}: skipped (PX4_BIN not set)")
+        skipped = "PX4_BIN not set" if key.startswith("px4") and not px4_bin else \
+            peers.missing(key) if key in peers.PEERS else None
+        if skipped:
+            result[key] = {"skipped": skipped}
+            log(f"  {key}: skipped ({skipped})")
             continue
         t0 = time.perf_counter()
         try:
@@ -510,6 +550,9 @@ def _summary(figures: dict[str, Any]) -> str:
             f"{frac['median']:.3f} of bare")
     if "steps_per_s" in figures:
         text = f"{figures['steps_per_s']['median']:.1f} steps/s, " + text
+    if "by_num_envs" in figures:
+        text += "; by N: " + ", ".join(f"{n}: {e['rtf']['median']:.1f}x ({e['fraction_of_bare']['median']:.3f})"
+                                       for n, e in figures["by_num_envs"].items())
     if "cpu_ms_per_step" in figures:
         cpu = figures["cpu_ms_per_step"]
         text += (f"; CPU per env step {cpu['total']:.0f} ms ({cpu['this_process']:.0f} here, "
@@ -529,6 +572,9 @@ def _summary(figures: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     """Measure at the chosen size, print a summary, write `--json` if given."""
     size = SIZES["smoke" if getattr(args, "smoke", False) else "quick" if getattr(args, "quick", False) else "full"]
+    scale = getattr(args, "scale", 1.0)
+    if scale != 1.0:
+        size = size.scaled(scale)
     print(f"bench ({size.name}): {SCENARIO}, {size.reps} repetitions of {size.sim_s:g} simulated s "
           f"per case after {size.warmup_s:g} s warm-up; real-time factor = simulated s / wall s", flush=True)
     start = time.perf_counter()

@@ -24,6 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--quick", action="store_true", help="shorter full run (under 3 minutes)")
     size.add_argument("--smoke", action="store_true", help="seconds-long full run: checks keys, not speed")
+    parser.add_argument("--scale", type=float, default=1.0, metavar="X",
+                        help="full run: every case runs X times longer (simulated s, episodes, vector steps)")
     parser.set_defaults(func=main)
 
 
