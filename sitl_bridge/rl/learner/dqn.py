@@ -120,6 +120,7 @@ def td_targets(
     terminated: torch.Tensor, gamma: float, double: bool = True,
 ) -> torch.Tensor:
     """y = r + gamma * (1 - terminated) * Q_target(s', a*) (a* from the online net when double)."""
+    # no_grad, not inference_mode: the loss saves y for its backward, which an inference tensor refuses.
     with torch.no_grad():
         next_q_target = target(next_obs)
         if double:
