@@ -246,3 +246,16 @@ def test_no_update_before_the_replay_holds_a_batch() -> None:
     assert learner.updates == 0 and learner.global_step == 5
     with pytest.raises(ConfigError, match="gradient_steps"):
         learner.config.replace(gradient_steps=0)
+
+
+def test_training_sets_torch_to_one_intra_and_one_inter_op_thread(tmp_path: Path) -> None:
+    """Where training starts, torch gets `torch_threads` intra-op threads and one inter-op thread
+    (a fresh process: the inter-op pool can be sized only before its first use)."""
+    import subprocess
+    import sys
+
+    code = ("import torch; from sitl_bridge.rl.learner.torch_threads import use_torch_threads; "
+            "use_torch_threads(1); use_torch_threads(1); "  # a second call (another run in the process) is harmless
+            "print(torch.get_num_threads(), torch.get_num_interop_threads())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split() == ["1", "1"]
