@@ -116,9 +116,10 @@ def test_a_run_killed_mid_wave_resumes_exactly(world: str, reference: Path, tmp_
 
 def test_any_env_factory_gives_copies_and_every_option_resumes_exactly(tmp_path: Path) -> None:
     """The corridor (not a scenario file): copies come from its factory; n-step, prioritized
-    replay, normalisation and per-episode target updates survive a resume inside a run of waves."""
+    replay, normalisation, per-episode target updates and several updates each time they are due
+    survive a resume inside a run of waves."""
     config = tiny_config(episodes=7, num_envs=3, n_step=3, prioritized_replay=True, normalize_observations=True,
-                         target_update_unit="episodes", target_update_period=2, train_every=2)
+                         target_update_unit="episodes", target_update_period=2, train_every=2, gradient_steps=2)
     spec = RunSpec(world="corridor.yaml", seed=5)
     with Trainer.start(tmp_path / "ref", spec, config, corridor_factory(), progress=False) as ref:
         ref.train()
@@ -132,7 +133,7 @@ def test_any_env_factory_gives_copies_and_every_option_resumes_exactly(tmp_path:
     assert [r["env_seed"] for r in a] == [episode_seed(5, e) for e in range(7)]
     assert [same(r) for r in a] == [same(r) for r in b]
     assert_same_checkpoint(ref.run_dir, resumed.run_dir)
-    assert ref.updates > 0
+    assert ref.updates > 0 and ref.updates % 2 == 0  # two updates each time they are due
 
 
 def test_act_batch_draws_as_act_does_row_by_row() -> None:
