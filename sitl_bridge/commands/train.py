@@ -1,7 +1,10 @@
-"""`sitl-bridge train WORLD.yaml`: train a DQN agent on a scenario, crash-safe and resumable.
+"""`sitl-bridge train WORLD.yaml`: train an agent on a scenario, crash-safe and resumable.
 
-Hyperparameters come from the scenario's `train:` section; every one can be overridden here
-(`--gamma 0.95`, `--episodes 500`, ... see `--help`). `--resume RUN_DIR` continues a run (killed or
+`--algorithm` picks the learner: dqn (default, the project's own) or ppo, sac, td3
+(Stable-Baselines3, the `sb3` extra; their constructor arguments come from the scenario's
+`train: {ppo: {...}}` mapping). Hyperparameters come from the scenario's `train:` section; every
+DQN one and the run-wide ones can be overridden here (`--gamma 0.95`, `--episodes 500`, ... see
+`--help`); the command line wins over `train: {algorithm: ...}`. `--resume RUN_DIR` continues a run (killed or
 finished, e.g. with a larger `--episodes`); `--init-from` starts from another run's network.
 """
 
@@ -24,7 +27,7 @@ if TYPE_CHECKING:
     from sitl_bridge.rl.training.trainer import Trainer
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("train", help="train a DQN agent on a scenario (resumable)",
+    parser = subparsers.add_parser("train", help="train a DQN, PPO, SAC or TD3 agent on a scenario (resumable)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("world", nargs="?", help="scenario file, or a shipped world by name (obstacle); not needed with --resume")
     add_env_autopilot_argument(parser)
@@ -116,7 +119,7 @@ def _train(args: argparse.Namespace) -> int:
 def _build(args: argparse.Namespace) -> Trainer:
     from sitl_bridge.rl.common.drones_env import scenario_env_factory
     from sitl_bridge.rl.training.run_dir import RunSpec
-    from sitl_bridge.rl.training.trainer import Trainer
+    from sitl_bridge.rl.training.runs import resume_run, start_run
 
     overrides = overrides_from_args(args)
     progress = not args.no_progress
@@ -124,7 +127,7 @@ def _build(args: argparse.Namespace) -> Trainer:
         if any(v is not None for k, v in overrides.items() if k != "episodes"):
             raise ConfigError("command line: only --episodes can change when resuming (the run's "
                               "config.yaml holds its hyperparameters)")
-        return Trainer.resume(args.resume, episodes=overrides["episodes"], progress=progress, heartbeat=True)
+        return resume_run(args.resume, episodes=overrides["episodes"], progress=progress, heartbeat=True)
     if not args.world:
         raise ConfigError("command line: WORLD: expected a scenario file (or --resume RUN_DIR), got nothing")
     from sitl_bridge.rl.training.scenario_file import check_scenario_file
@@ -143,4 +146,4 @@ def _build(args: argparse.Namespace) -> Trainer:
     spec = RunSpec(world=args.world, autopilot=args.autopilot, seed=args.seed, init_from=args.init_from,
                    standby=args.standby)
     factory = scenario_env_factory(args.world, args.autopilot, **({"standby": True} if args.standby else {}))
-    return Trainer.start(args.out, spec, config, factory, progress=progress, heartbeat=True)
+    return start_run(args.out, spec, config, factory, progress=progress, heartbeat=True)

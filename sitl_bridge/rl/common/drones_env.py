@@ -43,11 +43,15 @@ class DronesEnv:
         else:
             self.agent_names = ["drone_0"]
             space, action_space = env.observation_space, env.action_space
-        if not isinstance(action_space, gym.spaces.Discrete):
-            raise TypeError(f"DQN needs a Discrete action space, got {action_space}")
+        if not isinstance(action_space, (gym.spaces.Discrete, gym.spaces.Box)):
+            raise TypeError(f"expected a Discrete or Box action space, got {action_space}")
+        self.action_space = action_space
+        self.continuous = isinstance(action_space, gym.spaces.Box)
+        """Box actions (arrays); else Discrete codes (ints)."""
         self.num_drones = len(self.agent_names)
         self.obs_dim = int(np.prod(space.shape))
-        self.n_actions = int(action_space.n)
+        self.n_actions = 0 if self.continuous else int(action_space.n)
+        """Discrete actions: how many (0 for a Box)."""
         self.live: list[int] = []
 
     def reset(self, seed: int) -> tuple[dict[int, np.ndarray], dict[int, dict[str, Any]]]:
@@ -61,10 +65,10 @@ class DronesEnv:
         self.live = [0]
         return {0: self._flat(obs)}, {0: dict(info)}
 
-    def step(self, actions: dict[int, int]) -> StepResult:
+    def step(self, actions: dict[int, Any]) -> StepResult:
         """One simultaneous step of the live drones; drones that end leave `live`."""
         if self.parallel:
-            named = {self.agent_names[i]: int(a) for i, a in actions.items()}
+            named = {self.agent_names[i]: self._action(a) for i, a in actions.items()}
             obs, rewards, terms, truncs, infos = self.env.step(named)
             index = self.agent_names.index
             result = StepResult(
@@ -75,11 +79,14 @@ class DronesEnv:
                 infos={index(a): dict(i) for a, i in infos.items()},
             )
         else:
-            obs, reward, term, trunc, info = self.env.step(int(actions[0]))
+            obs, reward, term, trunc, info = self.env.step(self._action(actions[0]))
             result = StepResult({0: self._flat(obs)}, {0: float(reward)}, {0: bool(term)},
                                 {0: bool(trunc)}, {0: dict(info)})
         self.live = [i for i in self.live if not (result.terminated.get(i) or result.truncated.get(i))]
         return result
+
+    def _action(self, action: Any) -> Any:
+        return np.asarray(action, dtype=np.float32) if self.continuous else int(action)
 
     def render(self) -> Any:
         """The env's `render()` (an RGB frame with `render_mode="rgb_array"`)."""

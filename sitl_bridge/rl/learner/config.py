@@ -21,7 +21,7 @@ import dataclasses
 import inspect
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -32,6 +32,10 @@ from sitl_bridge.world.lookup import world_file
 OPTIMIZERS = ("adam", "adamax", "sgd", "rmsprop")
 LOSSES = ("mse", "huber", "mae")
 TARGET_UPDATE_UNITS = ("steps", "episodes")
+ALGORITHMS = ("dqn", "ppo", "sac", "td3")
+"""`dqn` is the project's own learner; the others are Stable-Baselines3's (`rl/learner/sb3_models.py`)."""
+SB3_SECTIONS = ("ppo", "sac", "td3")
+"""`train:` keys holding one SB3 algorithm's constructor arguments each."""
 
 
 SAFE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
@@ -45,8 +49,13 @@ MAX_REPLAY_ROWS = 20_000_000
 class TrainConfig:
     """Everything that decides how a DQN run learns (thesis Tables 4-8)."""
 
+    algorithm: str = "dqn"
+    """Learning algorithm: dqn (the project's own, every field below), or ppo, sac, td3
+    (Stable-Baselines3, the `sb3` extra; their hyperparameters are the mapping under the
+    algorithm's own key, e.g. `sac: {learning_rate: 0.0003}`)."""
     experiment: str = "dqn"
-    """Experiment name, the second part of the run directory name."""
+    """Experiment name, the second part of the run directory name (an SB3 run left at `dqn`
+    is named after its algorithm)."""
     episodes: int = 1000
     """The most training episodes the run takes (a cap: with stop_on_success and eval_every set,
     training stops at the first periodic greedy evaluation that reaches it)."""
@@ -138,9 +147,22 @@ class TrainConfig:
     """CPU threads torch may use (keep 1 when several runs share a machine; rl/learner/torch_threads.py)."""
     device: str = "cpu"
     """Torch device: cpu, cuda or auto (cuda when present)."""
+    ppo: dict = field(default_factory=dict)
+    """Stable-Baselines3 PPO constructor arguments (algorithm ppo), e.g. `{n_steps: 256}`."""
+    sac: dict = field(default_factory=dict)
+    """Stable-Baselines3 SAC constructor arguments (algorithm sac), e.g. `{buffer_size: 100000}`."""
+    td3: dict = field(default_factory=dict)
+    """Stable-Baselines3 TD3 constructor arguments (algorithm td3)."""
 
     def __post_init__(self) -> None:
+        if self.experiment in ALGORITHMS and self.experiment != self.algorithm:
+            object.__setattr__(self, "experiment", self.algorithm)  # name the run after what trains
         self.validate()
+
+    @property
+    def sb3_arguments(self) -> dict[str, Any]:
+        """The chosen SB3 algorithm's constructor arguments ({} for dqn)."""
+        return dict(getattr(self, self.algorithm)) if self.algorithm in SB3_SECTIONS else {}
 
     def validate(self, source: str = "train") -> None:
         """Raise ConfigError on values that cannot work (one line, naming the field)."""
@@ -192,10 +214,19 @@ class TrainConfig:
             ("success_window", 1 <= self.success_window <= 1_000_000, "an integer in [1, 1000000]"),
             ("torch_threads", 1 <= self.torch_threads <= 1024, "an integer in [1, 1024]"),
             ("device", self.device in ("cpu", "cuda", "auto"), "cpu, cuda or auto"),
+            ("algorithm", self.algorithm in ALGORITHMS, f"one of {', '.join(ALGORITHMS)}"),
         ]
         for name, ok, expected in checks:
             if not ok:
                 raise ConfigError(f"{source}: {name}: expected {expected}, got {getattr(self, name)!r}")
+        for name in SB3_SECTIONS:
+            section = getattr(self, name)
+            if not isinstance(section, dict):
+                raise ConfigError(f"{source}: {name}: expected a mapping of {name.upper()} arguments, got {section!r}")
+            if section or self.algorithm == name:
+                from sitl_bridge.rl.learner.sb3_models import check_arguments
+
+                check_arguments(name, section, f"{source}: {name}", needed=self.algorithm == name)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (YAML/JSON friendly), in field order."""
@@ -241,6 +272,8 @@ def parse_train_node(node: Node, base: TrainConfig | None = None) -> TrainConfig
             changes[key] = child.integer()
         elif kind is float:
             changes[key] = child.number()
+        elif kind is dict:
+            changes[key] = dict(child.mapping()) if child.value is not None else {}
         else:
             changes[key] = child.string()
     try:
@@ -274,6 +307,8 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     docs = field_docs()
     defaults = TrainConfig()
     for name, kind in _field_types().items():
+        if kind is dict:  # an algorithm's argument mapping: the scenario file's business
+            continue
         flag = "--" + name.replace("_", "-")
         help_text = f"{docs.get(name, '')} [default {getattr(defaults, name)!r}]"
         if kind is bool:
@@ -286,4 +321,4 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """The hyperparameters given on the command line (None where not given)."""
-    return {name: getattr(args, f"cfg_{name}", None) for name in _field_types()}
+    return {name: getattr(args, f"cfg_{name}", None) for name, kind in _field_types().items() if kind is not dict}

@@ -14,14 +14,16 @@ import torch
 
 from sitl_bridge.rl.learner.checkpoint import open_checkpoint
 from sitl_bridge.rl.learner.checkpoint_fit import RESTORE_ERRORS, unfit
-from sitl_bridge.rl.learner.dqn import NetworkShape, QNetwork
+from sitl_bridge.rl.learner.policy_file import build_network, online_tensors
 
 
 @dataclass
 class GreedyPolicy:
-    """argmax_a Q(obs, a) of a trained Q network; call it with one observation."""
+    """The deterministic policy of a trained network; call it with one observation. A Q network
+    (or a discrete SB3 policy, whose outputs are its action logits) gives argmax_a of its
+    outputs, an int; a continuous SB3 policy gives its action, an array."""
 
-    network: QNetwork
+    network: torch.nn.Module
     source: Path
     episode: int
     """Training episodes behind the weights."""
@@ -31,37 +33,46 @@ class GreedyPolicy:
         return self.network.shape.obs_dim
 
     @property
-    def n_actions(self) -> int:
+    def n_actions(self) -> int | None:
+        """Discrete actions: how many; None for a continuous policy."""
         return self.network.shape.n_actions
+
+    @property
+    def continuous(self) -> bool:
+        return self.n_actions is None
+
+    @property
+    def algorithm(self) -> str:
+        return str(getattr(self.network.shape, "algorithm", "dqn"))
 
     def q_values(self, obs: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return self.network(torch.as_tensor(np.asarray(obs, dtype=np.float32).reshape(-1))).numpy()
 
-    def __call__(self, obs: np.ndarray) -> int:
+    def __call__(self, obs: np.ndarray) -> int | np.ndarray:
         obs = np.asarray(obs, dtype=np.float32).reshape(-1)
         if obs.shape[0] != self.obs_dim:
             raise ValueError(f"{self.source}: the policy takes {self.obs_dim} observation values, got {obs.shape[0]}")
-        return int(np.argmax(self.q_values(obs)))
+        scores = self.q_values(obs)
+        return scores.astype(np.float32) if self.continuous else int(np.argmax(scores))
 
 
-def load_network(path: str | Path, *, latest: bool = False) -> tuple[QNetwork, Path, dict]:
-    """The online Q network of a checkpoint file or run directory (its best greedy checkpoint,
+def load_network(path: str | Path, *, latest: bool = False) -> tuple[torch.nn.Module, Path, dict]:
+    """The online network of a checkpoint file or run directory (its best greedy checkpoint,
     or with `latest` its newest valid one; see `resolve_checkpoint`)."""
     return open_checkpoint(path, _network_of, latest=latest)
 
 
-def _network_of(file: Path, tensors: dict[str, torch.Tensor], state: dict) -> tuple[QNetwork, Path, dict]:
-    """The checkpoint's online network; CheckpointCorrupt (try the next one) when its content
-    does not make one (a network of another size, a state field of the wrong type)."""
+def _network_of(file: Path, tensors: dict[str, torch.Tensor], state: dict) -> tuple[torch.nn.Module, Path, dict]:
+    """The checkpoint's online network (of whichever algorithm its shape names); CheckpointCorrupt
+    (try the next one) when its content does not make one (a network of another size, a state
+    field of the wrong type)."""
     try:
-        network = QNetwork(NetworkShape(**state["network"]))
-        network.load_state_dict({k[len("online."):]: v for k, v in tensors.items() if k.startswith("online.")})
+        network = build_network(state["network"], online_tensors(tensors))
         if type(state.get("episode", 0)) is not int:
             raise TypeError(f"episode is {state['episode']!r}, not a count")
     except RESTORE_ERRORS as exc:
         raise unfit(file, exc) from None
-    network.eval()
     return network, file, state
 
 

@@ -1,4 +1,8 @@
-"""Policy files: a trained Q network alone (`policy.safetensors`), no optimizer, replay or RNG state.
+"""Policy files: a trained network alone (`policy.safetensors`), no optimizer, replay or RNG state.
+
+The network's shape says which algorithm made it (`algorithm`: absent or dqn for the project's
+Q network, ppo/sac/td3 for a Stable-Baselines3 policy, `rl/learner/sb3_models.py`);
+`build_network` is the one place that turns a shape and tensors into a network, for every reader.
 
 A training checkpoint carries everything a resume needs (optimizer, replay priorities, RNG
 states) and weighs megabytes; the greedy policy needs only the online network (tens of KB). A
@@ -21,6 +25,7 @@ from typing import Any
 
 import safetensors.torch
 import torch
+from torch import nn
 
 from sitl_bridge.rl.learner.dqn import NetworkShape, QNetwork
 
@@ -62,15 +67,27 @@ def online_tensors(tensors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k[len(ONLINE):]: v for k, v in tensors.items() if k.startswith(ONLINE)}
 
 
-def build_network(shape: dict[str, Any], network: dict[str, torch.Tensor]) -> QNetwork:
-    """A QNetwork of `shape` holding `network`'s weights, in eval mode."""
+def network_algorithm(shape: dict[str, Any]) -> str:
+    """The algorithm a saved network shape belongs to (shapes written before SB3 runs: dqn)."""
+    return str(shape.get("algorithm", "dqn"))
+
+
+def build_network(shape: dict[str, Any], network: dict[str, torch.Tensor]) -> nn.Module:
+    """The network of `shape` holding `network`'s weights, in eval mode: a QNetwork, or for an
+    SB3 algorithm's shape its policy (`SB3Network`: forward gives the deterministic action's
+    scores). Raises RuntimeError/TypeError/KeyError when the tensors do not fit the shape."""
+    if network_algorithm(shape) != "dqn":
+        from sitl_bridge.rl.learner.sb3_models import SB3Network
+
+        return SB3Network.build(shape, network)
     model = QNetwork(NetworkShape(**shape))
     model.load_state_dict(network)
     model.eval()
     return model
 
 
-def probe_q_values(model: QNetwork) -> torch.Tensor:
+def probe_q_values(model: nn.Module) -> torch.Tensor:
+    """The network's outputs on the probe observations (Q values, or an SB3 policy's scores)."""
     with torch.no_grad():
         return model(probe_observations(model.shape.obs_dim)).to(torch.float32)
 
@@ -144,7 +161,7 @@ def parse_policy(data: bytes, source: str = "policy") -> tuple[dict[str, torch.T
             raise PolicyFileError(f"no {PROBE_TENSOR} tensor to check the network against")
         try:
             model = build_network(shape, tensors)
-        except (RuntimeError, TypeError) as exc:
+        except (RuntimeError, TypeError, KeyError, ValueError) as exc:
             raise PolicyFileError(f"the tensors do not make the network it describes ({exc})") from None
         if not torch.allclose(probe_q_values(model), expected, rtol=1e-5, atol=1e-6):
             raise PolicyFileError("the network's Q values on the probe observations differ from the exported ones")

@@ -53,6 +53,7 @@ from sitl_bridge.rl.learner.checkpoint_fit import check_fits
 from sitl_bridge.rl.learner.config import TrainConfig
 from sitl_bridge.rl.learner.dqn import NetworkShape
 from sitl_bridge.rl.learner.dqn_learner import DQNLearner
+from sitl_bridge.rl.learner.policy_file import network_algorithm
 from sitl_bridge.rl.learner.replay_store import ReplayCorrupt, ReplayStore, ReplayStoreState
 from sitl_bridge.rl.learner.torch_threads import use_torch_threads
 from sitl_bridge.rl.training import run_dir as rd
@@ -125,6 +126,10 @@ class Trainer:
             self.env = self.collector.copies[0]  # evaluations fly copy 0 between waves
         else:
             self.env = DronesEnv(env_factory(spec.seed))
+        if self.env.continuous:
+            (self.collector or self.env).close()
+            raise ConfigError(f"{spec.world}: dqn needs discrete actions and this scenario's are continuous "
+                              f"({self.env.action_space}); train it with --algorithm ppo, sac or td3")
         # Seed everything before the network exists, so its initial weights are reproducible.
         random.seed(spec.seed)
         torch.manual_seed(spec.seed)
@@ -133,11 +138,17 @@ class Trainer:
                              dueling=config.dueling, normalize=config.normalize_observations)
         self.learner = DQNLearner(shape, config, self.device, self.rng)
         self.store = ReplayStore(self.run_dir / rd.REPLAY, shape.obs_dim, config.replay_segment_rows)
+        self._init_run_state()
+
+    def _init_run_state(self) -> None:
+        """What every run keeps beside its learner: episode log, checkpoints, rolling success,
+        evaluation state (after `self.env` and the learner exist)."""
+        config = self.config
         self.episode_log = EpisodeLog(self.run_dir / rd.EPISODES_FILE)
         self.checkpoint_dir = self.run_dir / rd.CHECKPOINTS
-
         self.recent_success: deque[bool] = deque(maxlen=config.success_window)
-        self.early_end = EarlyEndWatch.of(getattr(self.env.env, "scenario", None), config.gamma)
+        gamma = float(config.sb3_arguments.get("gamma", 0.99)) if config.algorithm != "dqn" else config.gamma
+        self.early_end = EarlyEndWatch.of(getattr(self.env.env, "scenario", None), gamma)
         self._kept: list[tuple[Path, int]] = []  # (checkpoint, replay rows it needs)
         self._writer: TensorBoardLog | None = None
         self.stopped_early = False
@@ -169,7 +180,9 @@ class Trainer:
         run's (or checkpoint's) network and epsilon from `transfer_epsilon_max`."""
         init = ckpt.resolve_checkpoint(spec.init_from) if spec.init_from else None
         if init is not None:
-            config = _adopt_architecture(config, init[2]["network"])
+            check_same_algorithm(init[0], init[2], config.algorithm)
+            if config.algorithm == "dqn":
+                config = _adopt_architecture(config, init[2]["network"])
         run_dir = rd.create_run_dir(out, spec, config)
         try:
             trainer = cls(run_dir, spec, config, env_factory, **kwargs)
@@ -230,6 +243,7 @@ class Trainer:
             raise ckpt.CheckpointError(f"--transfer-replay: {path} is a policy file (the network alone, no replay); "
                                        "give an unslimmed run directory or training checkpoint, or leave "
                                        "--transfer-replay off")
+        check_same_algorithm(path, state, "dqn")
         source = state["network"]
         mine = self.agent.shape.to_dict()
         if (source["obs_dim"], source["n_actions"]) != (mine["obs_dim"], mine["n_actions"]):
@@ -459,8 +473,15 @@ class Trainer:
         self.last_eval = result
         return result
 
+    def greedy_action(self, obs: np.ndarray) -> Any:
+        """The current network's deterministic action for one observation."""
+        return self.agent.greedy(obs)
+
+    def learning_rate(self) -> float:
+        return float(self.agent.optimizer.param_groups[0]["lr"])
+
     def _greedy(self, episodes: int, flown: Sequence[Trace] = ()) -> tuple[EvalResult, list[Trace]]:
-        return evaluate_on(self.env, self.agent.greedy,
+        return evaluate_on(self.env, self.greedy_action,
                            world=self.spec.world, episodes=episodes, seed=self.spec.seed,
                            progress=self.progress, desc="greedy evaluation", flown=flown, beat=self.beat)
 
@@ -550,7 +571,7 @@ class Trainer:
         if self._writer is None:
             # purge_step drops events a killed session wrote after its last checkpoint.
             self._writer = TensorBoardLog(self.run_dir / rd.TENSORBOARD, purge_step=records[0].episode)
-        rate, lr = self.success_rate(), self.agent.optimizer.param_groups[0]["lr"]
+        rate, lr = self.success_rate(), self.learning_rate()
         for episode in sorted({r.episode for r in records}):  # a wave's episodes share its end's rates
             self._writer.episode(episode, [r for r in records if r.episode == episode], rate, lr)
 
@@ -582,6 +603,15 @@ def _refuse_edited_config(run_dir: Path, config: TrainConfig) -> None:
             raise ConfigError(f"{run_dir / rd.CONFIG_FILE} differs from the run's checkpoints in: "
                               f"{', '.join(differing)}; put the values back to resume (or start a new run)")
         return
+
+
+def check_same_algorithm(path: Path, state: dict[str, Any], algorithm: str) -> None:
+    """ShapeMismatch when the network a run starts from (`--init-from`) was trained by another
+    algorithm than the run's."""
+    source = network_algorithm(state["network"])
+    if source != algorithm:
+        raise ShapeMismatch(f"--init-from {path}: holds a {source} network, but this run trains {algorithm} "
+                            "(start from a run of the same algorithm)")
 
 
 def _prefixed(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
