@@ -1,4 +1,8 @@
-"""Action names in a scenario's own action frame (the thesis's 8 actions)."""
+"""Action names in a scenario's own action frame (the thesis's 8 actions), and actions as logs keep them."""
+
+from typing import Any
+
+import numpy as np
 
 WORLD = ("east", "west", "south", "north", "down", "up", "toward goal", "hover")
 GOAL = ("right", "left", "back", "forward", "down", "up", "toward goal", "hover")
@@ -17,3 +21,11 @@ def action_code(name: str, frame: str = "world") -> int:
     if name not in names:
         raise ValueError(f"unknown action {name!r} in the {frame} frame (expected one of {', '.join(names)})")
     return names.index(name)
+
+
+def logged_action(action: Any) -> int | list[float]:
+    """An action as episode logs and traces keep it: a discrete code as an int, a continuous
+    command (a Box vector) as its components rounded to 4 decimals."""
+    if isinstance(action, (int, np.integer)):
+        return int(action)
+    return [round(float(v), 4) for v in np.asarray(action).reshape(-1)]

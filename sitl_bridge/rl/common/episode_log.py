@@ -26,8 +26,9 @@ class EpisodeRecord:
     episode: int
     """Episode index, 0-based, continuous across resumes."""
     drone: int
-    actions: list[int]
-    """Action codes in order (the thesis's behaviour strings)."""
+    actions: list
+    """Action codes in order (the thesis's behaviour strings); a continuous command as its
+    components (`action_names.logged_action`)."""
     reward: float
     """Cumulative reward."""
     reward_terms: dict[str, float]

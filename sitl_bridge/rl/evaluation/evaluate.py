@@ -96,28 +96,42 @@ def evaluate_on(env: DronesEnv, policy: Callable[[np.ndarray], int], *, world: s
 class ConstantBaseline:
     """The best policy that always picks one action: what a learned policy must beat."""
 
-    action: int
+    action: int | list[float]
+    """A discrete code, or a continuous command (`constant_actions`)."""
     success_rate: float
     per_action: list[float]
-    """Greedy success of each constant action, by action code."""
+    """Greedy success of each constant action, in `constant_actions`' order."""
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
+def constant_actions(env: DronesEnv) -> list[int | list[float]]:
+    """The constant policies a learned one must beat: every discrete code, or for a continuous
+    (Box) action full speed along each of its first three axes both ways, and zero (hover)."""
+    if not env.continuous:
+        return list(range(env.n_actions))
+    size = int(np.prod(env.action_space.shape))
+    axes = [[float(sign) if k == axis else 0.0 for k in range(size)]
+            for axis in range(min(size, 3)) for sign in (1, -1)]
+    return [*axes, [0.0] * size]
+
+
 def constant_action_baseline(env: DronesEnv, *, world: str, episodes: int, seed: int = 0,
                              progress: bool = False,
                              beat: Callable[[str], None] | None = None) -> ConstantBaseline:
-    """Success of every constant-action policy on the evaluation episodes of `evaluate_on`
-    (same seeds), and the best of them (`beat` as in `evaluate_on`). A scenario that a constant
-    action solves needs no learning."""
+    """Success of every constant-action policy (`constant_actions`) on the evaluation episodes
+    of `evaluate_on` (same seeds), and the best of them (`beat` as in `evaluate_on`). A scenario
+    that a constant action solves needs no learning."""
     rates = []
-    for action in range(env.n_actions):
-        result, _ = evaluate_on(env, lambda _obs, a=action: a, world=world, episodes=episodes, seed=seed,
+    actions = constant_actions(env)
+    for action in actions:
+        flown = np.asarray(action, dtype=np.float32) if env.continuous else action
+        result, _ = evaluate_on(env, lambda _obs, a=flown: a, world=world, episodes=episodes, seed=seed,
                                 progress=progress, desc=f"constant action {action}", beat=beat)
         rates.append(result.success_rate)
     best = int(np.argmax(rates))
-    return ConstantBaseline(best, rates[best], rates)
+    return ConstantBaseline(actions[best], rates[best], rates)
 
 
 def evaluate_checkpoint(checkpoint: str | Path, world: str | Path, *, episodes: int, autopilot: str = "direct",

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from sitl_bridge.rl.common.action_names import logged_action
 from sitl_bridge.rl.common.drones_env import DronesEnv, episode_outcome
 
 
@@ -21,7 +22,8 @@ class Trace:
     episode: int
     drone: int
     seed: int
-    actions: list[int] = field(default_factory=list)
+    actions: list = field(default_factory=list)
+    """Discrete codes, or continuous commands as lists (`logged_action`)."""
     reward: float = 0.0
     outcome: str = "timeout"
     positions_enu_m: list[list[float]] = field(default_factory=list)
@@ -45,7 +47,7 @@ def record_step(traces: dict[int, Trace], chosen: dict[int, int], result: Any) -
     for i, action in chosen.items():
         info = result.infos.get(i, {})
         trace = traces[i]
-        trace.actions.append(int(action))
+        trace.actions.append(logged_action(action))
         trace.reward += result.rewards[i]
         position = position_of(info)
         if position is not None:

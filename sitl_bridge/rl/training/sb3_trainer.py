@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from sitl_bridge.errors import ConfigError
+from sitl_bridge.rl.common.action_names import logged_action
 from sitl_bridge.rl.common.drones_env import DronesEnv, EnvFactory
 from sitl_bridge.rl.common.episode_log import EpisodeRecord
 from sitl_bridge.rl.evaluation.rollout import episode_seed
@@ -39,14 +40,6 @@ from sitl_bridge.rl.training import run_dir as rd
 from sitl_bridge.rl.training.episode_tally import EpisodeTally
 from sitl_bridge.rl.training.eval_journal import drop_evaluations_after
 from sitl_bridge.rl.training.trainer import ShapeMismatch, Trainer, check_same_algorithm, log
-
-
-def action_code(action: Any) -> Any:
-    """An action as the episode log keeps it: a discrete code, or a continuous command's
-    components rounded to 4 decimals."""
-    if isinstance(action, (int, np.integer)):
-        return int(action)
-    return [round(float(v), 4) for v in np.asarray(action).reshape(-1)]
 
 
 class SB3Trainer(Trainer):
@@ -178,7 +171,7 @@ class SB3Trainer(Trainer):
         while self.env.live:
             action = learner.act(obs[0])
             result = self.env.step({0: action})
-            tally.add(0, action_code(action), result.rewards[0], result.terminated[0], result.truncated[0],
+            tally.add(0, logged_action(action), result.rewards[0], result.terminated[0], result.truncated[0],
                       result.infos.get(0, {}))
             learner.step(result.rewards[0], result.obs[0], result.terminated[0], result.truncated[0])
             obs.update(result.obs)

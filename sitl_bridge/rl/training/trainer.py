@@ -45,6 +45,7 @@ from sitl_bridge.rl.evaluation.evaluate import (
     ConstantBaseline,
     EvalResult,
     constant_action_baseline,
+    constant_actions,
     evaluate_on,
 )
 from sitl_bridge.rl.evaluation.rollout import Trace, episode_seed
@@ -441,7 +442,7 @@ class Trainer:
         if path.exists():
             with contextlib.suppress(ValueError, KeyError, TypeError):
                 return ConstantBaseline(**json.loads(path.read_text()))
-        print(baseline_notice(self.env.n_actions, self.config.eval_episodes), file=sys.stderr)
+        print(baseline_notice(len(constant_actions(self.env)), self.config.eval_episodes), file=sys.stderr)
         baseline = constant_action_baseline(self.env, world=self.spec.world, episodes=self.config.eval_episodes,
                                             seed=self.spec.seed, progress=self.progress, beat=self.beat)
         atomic_write_json(path, baseline.to_dict())
