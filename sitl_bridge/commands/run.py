@@ -292,4 +292,13 @@ def _print_episode(traces: list) -> None:
     """One line per drone as soon as its episode ends (`run --policy` progress)."""
     for trace in traces:
         print(f"episode {trace.episode} drone {trace.drone}: {trace.outcome} after {trace.steps} steps, "
-              f"reward {trace.reward:.0f}, actions {' '.join(map(str, trace.actions))}", flush=True)
+              f"reward {trace.reward:.0f}, {_actions_text(trace.actions)}", flush=True)
+
+
+def _actions_text(actions: list) -> str:
+    """Discrete codes in full; continuous commands (vectors) as their mean norm, one line."""
+    if actions and isinstance(actions[0], list):
+        import numpy as np
+
+        return f"continuous commands, mean norm {float(np.mean(np.linalg.norm(actions, axis=1))):.2f}"
+    return "actions " + " ".join(map(str, actions))

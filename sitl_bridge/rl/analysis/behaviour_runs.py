@@ -30,7 +30,7 @@ from sitl_bridge.rl.analysis.candidate_rules import (
 from sitl_bridge.rl.common.drones_env import DronesEnv, StepResult, scenario_env_factory
 from sitl_bridge.rl.evaluation.evaluate import evaluate_on
 from sitl_bridge.rl.evaluation.rollout import Trace
-from sitl_bridge.rl.learner.policy import policy_from_checkpoint
+from sitl_bridge.rl.learner.policy import policy_from_checkpoint, require_discrete
 from sitl_bridge.rl.training.run_dir import read_run_files, run_dir_of, run_scenario
 
 
@@ -78,7 +78,7 @@ def fly_recorded(checkpoint: str | Path, world: str | Path, *, episodes: int, se
                  autopilot: str = "direct", progress: bool = False, desc: str = "rules",
                  ) -> tuple[list[Trace], dict[tuple[int, int], np.ndarray]]:
     """Greedy rollouts of a checkpoint on the evaluation seeds (as `eval`), with observations."""
-    policy = policy_from_checkpoint(checkpoint)
+    policy = require_discrete(policy_from_checkpoint(checkpoint), "rule extraction")
     env = RecordingEnv(scenario_env_factory(world, autopilot)(seed))
     try:
         _, traces = evaluate_on(env, policy, world=str(world), episodes=episodes, seed=seed,

@@ -274,10 +274,10 @@ def distill_run(run_dir: str | Path, *, world: str | Path | None = None, max_dep
     from sitl_bridge.envs.features import index_words, observation_layout
     from sitl_bridge.envs.scenario import load_scenario
     from sitl_bridge.rl.common.drones_env import scenario_env_factory
-    from sitl_bridge.rl.learner.policy import policy_from_checkpoint
+    from sitl_bridge.rl.learner.policy import policy_from_checkpoint, require_discrete
     from sitl_bridge.rl.training.run_dir import read_run_files, run_dir_of, run_scenario
 
-    policy = policy_from_checkpoint(run_dir)
+    policy = require_discrete(policy_from_checkpoint(run_dir), "distillation")
     own = world is None
     world = Path(world) if world is not None else run_scenario(run_dir)
     covers = [world.name]

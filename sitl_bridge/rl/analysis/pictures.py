@@ -415,6 +415,8 @@ def _label_actions(ax: Any, project: Any, path: np.ndarray, trace: Trace, upto: 
     """The action code at the start of every run of equal actions (`3x4`: four steps of 3); with
     `altitude_only` (side view) only runs that change altitude, the others pile up there. A label
     closer than `near` (m) to ones already `placed` on this axis goes below them."""
+    if trace.actions and isinstance(trace.actions[0], list):
+        return  # continuous commands: no codes to label (the path itself shows them)
     dx, dy = (4, 4) if trace.drone % 2 == 0 else (4, -10)
     for first, code, n in run_lengths(trace.actions):
         if upto is not None and first >= upto:

@@ -67,7 +67,8 @@ def fly(env: DronesEnv, scenario: Scenario, seed: int, choose: Chooser, *, episo
             for i in env.live:
                 traces[i].outcome = "unfinished"
             break
-        acting = {i: int(a) for i, a in chosen.items()}  # type: ignore[arg-type]
+        acting = {i: a if isinstance(a, (list, np.ndarray)) else int(a)  # type: ignore[arg-type]
+                  for i, a in chosen.items()}
         result = env.step(acting)
         record_step(traces, acting, result)
         obs.update(result.obs)
@@ -126,7 +127,7 @@ def refly_logged(run_dir: str | Path, episode: int, *, autopilot: str = "direct"
     run's own scenario); with the differences from the log ([] when it is the same episode)."""
     records = logged_episode(run_dir, episode)
     seed = int(records[0].get("env_seed", 0))
-    actions = {int(r["drone"]): [int(a) for a in r["actions"]] for r in records}
+    actions = {int(r["drone"]): [a if isinstance(a, list) else int(a) for a in r["actions"]] for r in records}
     world = run_scenario(run_dir)
     scenario = load_scenario(world)
 

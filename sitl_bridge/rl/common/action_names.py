@@ -25,7 +25,8 @@ def action_code(name: str, frame: str = "world") -> int:
 
 def logged_action(action: Any) -> int | list[float]:
     """An action as episode logs and traces keep it: a discrete code as an int, a continuous
-    command (a Box vector) as its components rounded to 4 decimals."""
+    command (a Box vector) as its float32 components, 9 significant digits each (what reads
+    back as the same float32: a logged episode flies again exactly)."""
     if isinstance(action, (int, np.integer)):
         return int(action)
-    return [round(float(v), 4) for v in np.asarray(action).reshape(-1)]
+    return [float(f"{v:.9g}") for v in np.asarray(action, dtype=np.float32).reshape(-1)]

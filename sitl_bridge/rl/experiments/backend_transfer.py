@@ -99,7 +99,7 @@ def fly_on_backend(policy: Callable[[np.ndarray], int], world: str | Path, autop
     for trace in traces:
         flight.outcomes.append(trace.outcome)
         flight.steps.append(trace.steps)
-        flight.actions.append([int(a) for a in trace.actions])
+        flight.actions.append(list(trace.actions))  # codes, or continuous commands (lists)
         path = np.asarray(trace.positions_enu_m, dtype=float)
         moved = np.linalg.norm(np.diff(path, axis=0), axis=1) if len(path) > 1 else np.empty(0)
         flight.step_m.append(float(moved.mean()) if moved.size else None)

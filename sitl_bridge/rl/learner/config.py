@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from sitl_bridge.errors import ConfigError, Node, load_yaml
+from sitl_bridge.rl.learner.sb3_arguments import MissingExtra, check_arguments
 from sitl_bridge.world.lookup import world_file
 
 OPTIMIZERS = ("adam", "adamax", "sgd", "rmsprop")
@@ -224,8 +225,6 @@ class TrainConfig:
             if not isinstance(section, dict):
                 raise ConfigError(f"{source}: {name}: expected a mapping of {name.upper()} arguments, got {section!r}")
             if section or self.algorithm == name:
-                from sitl_bridge.rl.learner.sb3_models import check_arguments
-
                 check_arguments(name, section, f"{source}: {name}", needed=self.algorithm == name)
 
     def to_dict(self) -> dict[str, Any]:
@@ -278,6 +277,8 @@ def parse_train_node(node: Node, base: TrainConfig | None = None) -> TrainConfig
             changes[key] = child.string()
     try:
         return dataclasses.replace(base, **changes)
+    except MissingExtra:
+        raise
     except ConfigError as exc:
         # Re-point the message at the file and the `train.` key path.
         raise ConfigError(str(exc).replace("train: ", f"{node.source}: train.", 1)) from None
@@ -296,6 +297,8 @@ def apply_overrides(config: TrainConfig, overrides: dict[str, Any]) -> TrainConf
     changes = {k: v for k, v in overrides.items() if v is not None}
     try:
         return dataclasses.replace(config, **changes)
+    except MissingExtra:
+        raise  # names no key: nothing to re-point
     except ConfigError as exc:
         name, _, rest = str(exc).removeprefix("train: ").partition(": ")
         raise ConfigError(f"command line: --{name.replace('_', '-')}: {rest}") from None

@@ -57,6 +57,15 @@ class GreedyPolicy:
         return scores.astype(np.float32) if self.continuous else int(np.argmax(scores))
 
 
+def require_discrete(policy: GreedyPolicy, what: str) -> GreedyPolicy:
+    """`policy`, or a one-line ValueError when it is continuous: `what` (rule extraction,
+    distillation) reads discrete action codes and does not support continuous commands yet."""
+    if policy.continuous:
+        raise ValueError(f"{policy.source}: {what} of a continuous {policy.algorithm} policy is not supported yet "
+                         "(it reads discrete action codes); eval, plot, replay, run --policy and export are")
+    return policy
+
+
 def load_network(path: str | Path, *, latest: bool = False) -> tuple[torch.nn.Module, Path, dict]:
     """The online network of a checkpoint file or run directory (its best greedy checkpoint,
     or with `latest` its newest valid one; see `resolve_checkpoint`)."""

@@ -2,9 +2,7 @@
 `train:` section, their networks described by a plain-JSON shape, their state as tensors.
 
 SB3 is the implementation; nothing here re-implements an algorithm. What this module adds:
-- `check_arguments`: the `train.<algorithm>` mapping checked against the SB3 constructor (a
-  one-line ConfigError naming an unknown key), and a one-line error naming the `sb3` extra
-  when Stable-Baselines3 is missing;
+- (`rl/learner/sb3_arguments.py` checks the `train.<algorithm>` mapping, without torch;)
 - `build_model`: the SB3 model for an observation/action space (`SpacesEnv` gives SB3 the
   spaces; the trainer flies the real env itself, episode by episode);
 - `SB3Network`: an SB3 policy as a module with the `shape` the project's policy files,
@@ -17,7 +15,6 @@ SB3 is the implementation; nothing here re-implements an algorithm. What this mo
 
 from __future__ import annotations
 
-import inspect
 import io
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -28,87 +25,33 @@ import torch
 from torch import nn
 
 from sitl_bridge.errors import ConfigError
+from sitl_bridge.rl.learner.sb3_arguments import (
+    OFF_POLICY,
+    action_noise_sigma,
+    policy_kwargs_names,
+    sb3_class,
+)
 
-SB3_MISSING = ("Stable-Baselines3 is not installed; install the sb3 extra "
-               "(pip install 'sitl-bridge[sb3]') to train with {algorithm}")
-CONTROLLED = {
-    "policy": "the policy is always SB3's MlpPolicy",
-    "env": "the trainer flies the scenario itself",
-    "seed": "the run's --seed seeds it",
-    "device": "train.device sets it",
-    "verbose": "the trainer reports progress",
-    "tensorboard_log": "the run directory's tb/ holds TensorBoard",
-    "stats_window_size": "train.success_window sets the rolling window",
-    "_init_setup_model": "internal",
-    "replay_buffer_class": "the replay is saved as arrays of SB3's plain ReplayBuffer",
-    "replay_buffer_kwargs": "the replay is saved as arrays of SB3's plain ReplayBuffer",
-    "optimize_memory_usage": "the replay is saved as arrays of SB3's plain ReplayBuffer",
-    "rollout_buffer_class": "PPO's partial rollout is saved as arrays of SB3's plain RolloutBuffer",
-    "rollout_buffer_kwargs": "PPO's partial rollout is saved as arrays of SB3's plain RolloutBuffer",
-}
-"""Constructor arguments the scenario may not set, and why (one place, for the error message)."""
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU, "silu": nn.SiLU}
-OFF_POLICY = ("sac", "td3")
-
-
-def sb3_class(algorithm: str) -> type:
-    """The SB3 class of `algorithm`; ConfigError naming the `sb3` extra when SB3 is missing."""
-    try:
-        import stable_baselines3
-    except ImportError:
-        raise ConfigError(SB3_MISSING.format(algorithm=algorithm)) from None
-    return {"ppo": stable_baselines3.PPO, "sac": stable_baselines3.SAC, "td3": stable_baselines3.TD3}[algorithm]
-
-
-def check_arguments(algorithm: str, arguments: dict[str, Any], source: str, *, needed: bool = True) -> None:
-    """Raise ConfigError (one line, naming the key) for an argument the SB3 constructor does not
-    take or the trainer controls, or a policy_kwargs value that is not plain data. Without SB3,
-    only an algorithm that is `needed` is an error."""
-    try:
-        cls = sb3_class(algorithm)
-    except ConfigError:
-        if needed:
-            raise
-        return
-    known = set(inspect.signature(cls.__init__).parameters) - {"self"}
-    for key, value in arguments.items():
-        if key in CONTROLLED:
-            raise ConfigError(f"{source}.{key}: not settable here ({CONTROLLED[key]})")
-        if algorithm in OFF_POLICY and key == "n_steps" and value != 1:
-            raise ConfigError(f"{source}.{key}: n-step returns are not supported yet for {algorithm.upper()} "
-                              "(they swap in another replay buffer class); leave it at 1")
-        if key not in known:
-            raise ConfigError(f"{source}.{key}: not a {algorithm.upper()} argument (known: "
-                              f"{', '.join(sorted(known - set(CONTROLLED)))})")
-        if key == "action_noise":
-            _action_noise(value, 1, f"{source}.{key}")
-        if key == "policy_kwargs":
-            _policy_kwargs(value, f"{source}.{key}")
 
 
 def _policy_kwargs(value: Any, source: str) -> dict[str, Any]:
-    """SB3 policy_kwargs from plain data: `activation_fn` by name (tanh, relu, ...)."""
-    if not isinstance(value, dict):
-        raise ConfigError(f"{source}: expected a mapping (net_arch, activation_fn, ...), got {value!r}")
-    kwargs = dict(value)
+    """SB3 policy_kwargs from plain data (checked by `sb3_arguments`): `activation_fn` by name."""
+    kwargs = policy_kwargs_names(value, source)
     if "activation_fn" in kwargs:
-        name = kwargs["activation_fn"]
-        if name not in ACTIVATIONS:
-            raise ConfigError(f"{source}.activation_fn: expected one of {', '.join(ACTIVATIONS)}, got {name!r}")
-        kwargs["activation_fn"] = ACTIVATIONS[name]
+        kwargs["activation_fn"] = ACTIVATIONS[kwargs["activation_fn"]]
     return kwargs
 
 
 def _action_noise(value: Any, action_dim: int, source: str) -> Any:
     """`{type: normal, sigma: 0.1}` as SB3's NormalActionNoise (None stays None)."""
-    if value is None:
+    sigma = action_noise_sigma(value, source)
+    if sigma is None:
         return None
-    if not (isinstance(value, dict) and value.get("type") == "normal" and set(value) <= {"type", "sigma"}
-            and isinstance(value.get("sigma"), (int, float)) and value["sigma"] >= 0):
-        raise ConfigError(f"{source}: expected {{type: normal, sigma: NUMBER >= 0}}, got {value!r}")
     from stable_baselines3.common.noise import NormalActionNoise
 
-    return NormalActionNoise(np.zeros(action_dim), np.full(action_dim, float(value["sigma"])))
+    return NormalActionNoise(np.zeros(action_dim), np.full(action_dim, sigma))
+
 
 
 class SpacesEnv(gym.Env):

@@ -1,0 +1,126 @@
+"""Stable-Baselines3 algorithms through `sitl-bridge train --algorithm`: the DQN run directory,
+kill -9 and --resume continuing exactly (real SIGKILLs of real `python -m sitl_bridge train`
+processes), the argument checks, and policies that every post-training command reads."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from test_rl_kill_faults import _jsonl, _run_dir_of, _train_cli, assert_same_run, kill_when
+
+from sitl_bridge.errors import ConfigError
+from sitl_bridge.rl.learner.config import TrainConfig, load_train_config
+
+pytest.importorskip("stable_baselines3")
+
+ROOT = Path(__file__).parent.parent
+PPO_TINY = {"n_steps": 16, "batch_size": 8, "n_epochs": 2, "policy_kwargs": {"net_arch": [16, 16]}}
+SAC_TINY = {"buffer_size": 70, "learning_starts": 20, "batch_size": 16, "train_freq": 4, "gradient_steps": 2,
+            "policy_kwargs": {"net_arch": [16, 16]}}
+
+
+def scenario(tmp_path: Path, world: str, train: dict, **task: object) -> Path:
+    """A copy of a shipped world with this `train:` section (and `task:` changes)."""
+    data = yaml.safe_load((ROOT / "worlds" / world).read_text())
+    data["train"] = train
+    data["task"].update(task)
+    path = tmp_path / world
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def sitl_bridge(*argv: str, cwd: Path = ROOT, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "sitl_bridge", *argv], cwd=cwd, capture_output=True, text=True,
+                          timeout=timeout, env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+# -- the algorithm and its arguments ----------------------------------------------------------------
+def test_algorithm_comes_from_the_train_section_and_the_command_line_wins(tmp_path: Path) -> None:
+    world = scenario(tmp_path, "empty.yaml", {"algorithm": "ppo", "ppo": {"n_steps": 32}})
+    config = load_train_config(world)
+    assert (config.algorithm, config.sb3_arguments, config.experiment) == ("ppo", {"n_steps": 32}, "ppo")
+    assert load_train_config(world, {"algorithm": "dqn"}).algorithm == "dqn"
+    assert load_train_config(world, {"algorithm": "dqn"}).experiment == "dqn"
+
+
+def test_an_unknown_sb3_argument_is_one_line_naming_the_key(tmp_path: Path) -> None:
+    world = scenario(tmp_path, "empty.yaml", {"algorithm": "ppo", "ppo": {"n_stepz": 32}})
+    with pytest.raises(ConfigError, match=r"empty.yaml: train\.ppo\.n_stepz: not a PPO argument \(known: .*n_steps"):
+        load_train_config(world)
+    with pytest.raises(ConfigError, match=r"train: sac\.seed: not settable here \(the run's --seed seeds it\)"):
+        TrainConfig(algorithm="sac", sac={"seed": 3})
+    with pytest.raises(ConfigError, match=r"sac\.policy_kwargs\.activation_fn: expected one of tanh"):
+        TrainConfig(algorithm="sac", sac={"policy_kwargs": {"activation_fn": "nn.Tanh"}})
+    result = sitl_bridge("train", "worlds/empty.yaml", "--algorithm", "sac", "--out", str(tmp_path / "runs"))
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1].startswith("error: train.sac: ")
+    assert "SAC and TD3 need continuous actions" in result.stderr
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
+
+
+def test_a_missing_stable_baselines3_names_the_extra(tmp_path: Path) -> None:
+    blocker = tmp_path / "block"
+    blocker.mkdir()
+    (blocker / "stable_baselines3.py").write_text("raise ImportError('not installed here')\n")
+    result = subprocess.run([sys.executable, "-m", "sitl_bridge", "train", "worlds/empty.yaml", "--algorithm", "ppo",
+                             "--out", str(tmp_path / "runs")], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "PYTHONPATH": f"{blocker}{os.pathsep}{ROOT}"})
+    assert result.returncode == 2
+    assert result.stderr.strip() == ("error: Stable-Baselines3 is not installed; install the sb3 extra "
+                                     "(pip install 'sitl-bridge[sb3]') to train with ppo")
+
+
+# -- kill -9 and --resume ----------------------------------------------------------------------------
+def _kill_and_resume(tmp_path: Path, world: Path, kill_after: int, args: list[str]) -> tuple[Path, Path]:
+    argv = [str(world), "--seed", "5", *args]
+    uninterrupted = _train_cli(tmp_path / "ref", *argv)  # alongside the killed one (two cores)
+    killed = _train_cli(tmp_path / "killed", *argv)
+    try:
+        run_dir = _run_dir_of(killed)
+        kill_when(run_dir, killed, lambda beat: beat["episode"] >= kill_after)
+        resumed = _train_cli(tmp_path / "unused", "--resume", str(run_dir))
+        assert resumed.wait(timeout=300) == 0
+        reference = _run_dir_of(uninterrupted)
+        assert uninterrupted.wait(timeout=300) == 0
+    finally:
+        for proc in (uninterrupted, killed):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    return run_dir, reference
+
+
+def test_ppo_killed_9_mid_run_resumes_exactly(tmp_path: Path) -> None:
+    world = scenario(tmp_path, "empty.yaml", {"algorithm": "ppo", "ppo": PPO_TINY, "experiment": "ppo"})
+    run_dir, reference = _kill_and_resume(tmp_path, world, 3, ["--episodes", "7", "--eval-every", "2",
+                                                               "--eval-episodes", "2"])
+    records = _jsonl(run_dir / "episodes.jsonl")
+    assert [r["episode"] for r in records] == list(range(7))
+    assert records[-1]["global_step"] > 2 * PPO_TINY["n_steps"]  # PPO updated several times, across the kill
+    assert any(r["mean_loss"] is not None for r in records)
+    assert_same_run(run_dir, reference)  # same episodes (actions), evaluations, weights, optimizer, rollout
+
+
+@pytest.mark.slow
+def test_sac_killed_9_mid_run_resumes_exactly_with_the_same_replay(tmp_path: Path) -> None:
+    world = scenario(tmp_path, "obstacle_continuous.yaml", {"algorithm": "sac", "sac": SAC_TINY},
+                     max_time_s=3)
+    run_dir, reference = _kill_and_resume(tmp_path, world, 3, ["--episodes", "6", "--eval-every", "3",
+                                                               "--eval-episodes", "1"])
+    assert_same_run(run_dir, reference)
+    shards = sorted(p.name for p in (run_dir / "replay").glob("*.npz"))
+    assert shards == sorted(p.name for p in (reference / "replay").glob("*.npz"))
+    assert not shards[0].startswith("r000000000000_")  # the ring wrapped: the oldest shards were pruned
+    for name in shards:
+        with np.load(run_dir / "replay" / name) as mine, np.load(reference / "replay" / name) as theirs:
+            assert all(np.array_equal(mine[k], theirs[k]) for k in theirs.files), name
+    actions = [r["actions"][0] for r in _jsonl(run_dir / "episodes.jsonl")]
+    assert all(isinstance(a, list) and len(a) == 3 for a in actions)  # continuous commands logged
+    assert json.loads((run_dir / "run.json").read_text())["seed"] == 5
