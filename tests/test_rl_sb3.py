@@ -124,3 +124,67 @@ def test_sac_killed_9_mid_run_resumes_exactly_with_the_same_replay(tmp_path: Pat
     actions = [r["actions"][0] for r in _jsonl(run_dir / "episodes.jsonl")]
     assert all(isinstance(a, list) and len(a) == 3 for a in actions)  # continuous commands logged
     assert json.loads((run_dir / "run.json").read_text())["seed"] == 5
+
+
+# -- every command after training -------------------------------------------------------------------
+def cli(capsys: pytest.CaptureFixture, *argv: str) -> str:
+    from sitl_bridge.cli import main
+
+    code = main(list(argv))
+    out = capsys.readouterr()
+    assert code == 0, out.err[-2000:]
+    return out.out + out.err
+
+
+def _tiny_run(out: Path, world: Path, seed: int) -> Path:
+    from sitl_bridge.cli import main
+
+    assert main(["train", str(world), "--seed", str(seed), "--episodes", "4", "--eval-every", "2",
+                 "--eval-episodes", "2", "--out", str(out), "--no-progress"]) == 0
+    (run,) = [p for p in out.iterdir() if p.name.endswith(f"__{seed}__" + p.name.split("__")[-1])]
+    return run
+
+
+@pytest.mark.slow  # about a minute: two runs, MAVSDK on the stub twice
+def test_a_tiny_ppo_run_goes_through_every_command_after_training(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    from sitl_bridge.rl.learner.checkpoint import resolve_checkpoint
+    from sitl_bridge.rl.learner.policy import policy_from_checkpoint
+
+    world = scenario(tmp_path, "empty.yaml", {"algorithm": "ppo", "ppo": PPO_TINY, "experiment": "tiny"},
+                     max_steps=8)
+    runs = [_tiny_run(tmp_path / f"s{seed}", world, seed) for seed in (0, 1)]
+    run = runs[0]
+    for name in ("run.json", "scenario.yaml", "config.yaml", "episodes.jsonl", "evals.jsonl", "best.safetensors",
+                 "baseline.json", "tb", "heartbeat.json"):
+        assert (run / name).exists(), name
+    assert yaml.safe_load((run / "config.yaml").read_text())["algorithm"] == "ppo"
+    policy = policy_from_checkpoint(run)
+    assert (policy.algorithm, policy.n_actions, policy.continuous) == ("ppo", 8, False)
+    state = resolve_checkpoint(run)[2]
+    assert state["network"]["algorithm"] == "ppo"
+
+    evaluated = cli(capsys, "eval", str(run), "--episodes", "2", "--json")
+    assert json.loads(evaluated[evaluated.index("{"):evaluated.rindex("}") + 1])["episodes"] == 2
+    cli(capsys, "plot", *map(str, runs), "--out", str(tmp_path / "curves.png"))
+    assert (tmp_path / "curves.png").stat().st_size > 1000
+    cli(capsys, "replay", str(run), "--episode", "1", "--greedy", "--out", str(tmp_path / "greedy.png"))
+    cli(capsys, "replay", str(run), "--episode", "1", "--out", str(tmp_path / "logged.png"))
+    assert (tmp_path / "greedy.png").is_file() and (tmp_path / "logged.png").is_file()
+    exported = cli(capsys, "export", str(run))
+    assert "verified" in exported
+    flown = policy_from_checkpoint(run / "policy.safetensors")
+    obs = np.linspace(-1, 1, policy.obs_dim, dtype=np.float32)
+    assert flown(obs) == policy(obs)  # the export computes what the checkpoint computes
+    through_mavsdk = cli(capsys, "run", str(world), "--policy", str(run), "--episodes", "1")
+    assert "episode 0 drone 0:" in through_mavsdk
+    transfer = cli(capsys, "transfer", str(run), "--episodes", "1")
+    assert "stub:" in transfer
+    cli(capsys, "rules", str(run), "--episodes", "1")
+    cli(capsys, "train", str(world), "--init-from", str(run), "--episodes", "1", "--eval-episodes", "0",
+        "--out", str(tmp_path / "transfer"), "--no-progress")
+    (started,) = (tmp_path / "transfer").iterdir()
+    assert json.loads((started / "run.json").read_text())["init_from"] == str(run)
+    pytest.importorskip("imageio")
+    cli(capsys, "eval", str(run), "--episodes", "1", "--video", str(tmp_path / "videos"))
+    assert list((tmp_path / "videos").glob("*.mp4"))
