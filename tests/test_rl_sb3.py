@@ -188,3 +188,30 @@ def test_a_tiny_ppo_run_goes_through_every_command_after_training(tmp_path: Path
     pytest.importorskip("imageio")
     cli(capsys, "eval", str(run), "--episodes", "1", "--video", str(tmp_path / "videos"))
     assert list((tmp_path / "videos").glob("*.mp4"))
+
+
+# -- sweep and experiment ---------------------------------------------------------------------------
+def test_sweep_trains_the_algorithm_it_is_given(tmp_path: Path) -> None:
+    world = scenario(tmp_path, "empty.yaml", {"ppo": PPO_TINY}, max_steps=6)
+    result = sitl_bridge("sweep", str(world), "--algorithm", "ppo", "--seeds", "0", "--episodes", "2",
+                         "--eval-every", "0", "--eval-episodes", "0", "--out", str(tmp_path / "sweep"))
+    assert result.returncode == 0, result.stderr[-2000:]
+    (row,) = json.loads((tmp_path / "sweep" / "summary.json").read_text())
+    assert row["status"] == "done" and row["episodes"] == 2
+    assert yaml.safe_load((Path(row["run_dir"]) / "config.yaml").read_text())["algorithm"] == "ppo"
+
+
+def test_an_experiment_lists_one_world_once_per_algorithm(tmp_path: Path) -> None:
+    from sitl_bridge.rl.experiments.runner import load_experiment
+
+    world = scenario(tmp_path, "empty.yaml", {"ppo": PPO_TINY})
+    path = tmp_path / "compare.yaml"
+    path.write_text(yaml.safe_dump({"experiment": {"name": "compare", "seeds": [0], "scenarios": [
+        {"world": str(world), "train": {"episodes": 3}},
+        {"world": str(world), "algorithm": "ppo", "train": {"episodes": 3}}]}}))
+    experiment = load_experiment(path)
+    assert [(s.stem, s.overrides) for s in experiment.scenarios] == [
+        ("empty", {"episodes": 3}), ("empty_ppo", {"episodes": 3, "algorithm": "ppo"})]
+    path.write_text(path.read_text().replace("algorithm: ppo", "algorithm: a2c"))
+    with pytest.raises(ConfigError, match=r"algorithm: expected one of dqn, ppo, sac, td3, got 'a2c'"):
+        load_experiment(path)

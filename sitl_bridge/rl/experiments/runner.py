@@ -10,6 +10,8 @@ An experiment file (`experiments/thesis.yaml`)::
       scenarios:
         - world: ../worlds/random_goal.yaml
           train: {episodes: 1500}     # overrides of that world's train: section (the budget)
+          algorithm: ppo              # optional: dqn, ppo, sac or td3 (its key is then `<stem>_ppo`,
+                                      # so one world can be listed once per algorithm)
           seeds: 0-2                  # optional: its own seeds (a baseline), not in a comparison
           thesis: {shorthand: ER, result: "stable", source: "thesis Table 3"}   # shown beside ours
       comparisons:                    # with vs without the earlier network, same seeds
@@ -155,16 +157,20 @@ def load_experiment(path: str | Path) -> Experiment:
     node.reject_unknown({"name", "seeds", "eval_episodes", "autopilot", "scenarios", "comparisons", "report"})
     scenarios: list[ScenarioSpec] = []
     for item in node.get("scenarios").list(min_len=1):
-        item.reject_unknown({"world", "train", "thesis", "seeds"})
+        item.reject_unknown({"world", "train", "thesis", "seeds", "algorithm"})
         world = str(Path(world_path(item.get("world"), base)).resolve())
         train = item.get("train", None)
-        parse_train_node(train, load_train_config(world))  # a typo fails now, not after hours
-        stem = Path(world).stem
+        overrides = dict(train.value or {})
+        if item.has("algorithm"):  # the same world may be listed once per algorithm
+            overrides["algorithm"] = item.get("algorithm").string()
+        config = parse_train_node(Node(overrides, train.source, train.path), load_train_config(world))
+        # (a typo fails now, not after hours)
+        stem = Path(world).stem + (f"_{config.algorithm}" if item.has("algorithm") and config.algorithm != "dqn" else "")
         if stem in RESERVED or any(s.stem == stem for s in scenarios):
             raise item.get("world").error(f"a scenario file whose stem is unique and not one of "
                                           f"{', '.join(sorted(RESERVED))}")
         seeds = tuple(_seeds(item.get("seeds"))) if item.has("seeds") else None
-        scenarios.append(ScenarioSpec(world, stem, dict(train.value or {}), _thesis(item.get("thesis", {})), seeds))
+        scenarios.append(ScenarioSpec(world, stem, overrides, _thesis(item.get("thesis", {})), seeds))
     by_world = {s.world: s.stem for s in scenarios}
     comparisons: list[ComparisonSpec] = []
     for item in node.get("comparisons", []).list():

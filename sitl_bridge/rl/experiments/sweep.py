@@ -181,19 +181,19 @@ def _train(job: SweepJob) -> SweepResult:
         return _train_supervised(job)
     from sitl_bridge.rl.common.drones_env import scenario_env_factory
     from sitl_bridge.rl.training.run_dir import RunSpec
-    from sitl_bridge.rl.training.trainer import Trainer
+    from sitl_bridge.rl.training.runs import resume_run, start_run
 
     job_dir = Path(job.job_dir)
     job_dir.mkdir(parents=True, exist_ok=True)
     factory = scenario_env_factory(job.world, job.autopilot, instance_base=job.instance_base)
     started = [d for d in sorted(job_dir.iterdir()) if (d / RUN_FILE).exists()]
     if started:  # an unfinished run of an earlier sweep: continue it
-        trainer = Trainer.resume(started[-1], factory, episodes=job.overrides.get("episodes"),
+        trainer = resume_run(started[-1], factory, episodes=job.overrides.get("episodes"),
                                  progress=job.progress)
     else:
         config = load_train_config(job.world, job.overrides)
         spec = RunSpec(world=job.world, autopilot=job.autopilot, seed=job.seed, init_from=job.init_from)
-        trainer = Trainer.start(job_dir, spec, config, factory, progress=job.progress)
+        trainer = start_run(job_dir, spec, config, factory, progress=job.progress)
     with trainer:
         outcome = trainer.train()
         greedy = trainer.last_eval.success_rate if trainer.last_eval is not None else None

@@ -32,7 +32,8 @@ from sitl_bridge.rl.common.drones_env import scenario_env_factory
 from sitl_bridge.rl.evaluation.evaluate import evaluate_checkpoint
 from sitl_bridge.rl.learner.config import load_train_config, parse_train_node
 from sitl_bridge.rl.training.run_dir import RunSpec
-from sitl_bridge.rl.training.trainer import ShapeMismatch, Trainer
+from sitl_bridge.rl.training.runs import resume_run, start_run
+from sitl_bridge.rl.training.trainer import ShapeMismatch
 
 log = logging.getLogger(__name__)
 STATE_FILE = "curriculum.json"
@@ -124,10 +125,10 @@ def run_curriculum(curriculum: Curriculum, out: str | Path, *, seed: int = 0, au
             continue
         config = load_train_config(stage.world, stage.overrides)
         if index < len(reports):  # started before: resume it
-            trainer = Trainer.resume(reports[index].run_dir, progress=progress)
+            trainer = resume_run(reports[index].run_dir, progress=progress)
         else:
             spec = RunSpec(world=stage.world, autopilot=autopilot, seed=seed, init_from=previous)
-            trainer = Trainer.start(folder, spec, config, scenario_env_factory(stage.world, autopilot),
+            trainer = start_run(folder, spec, config, scenario_env_factory(stage.world, autopilot),
                                     progress=progress)
             reports.append(StageReport(index, stage.world, str(trainer.run_dir)))
             _save(state_path, curriculum, reports)
