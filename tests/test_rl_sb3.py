@@ -215,3 +215,32 @@ def test_an_experiment_lists_one_world_once_per_algorithm(tmp_path: Path) -> Non
     path.write_text(path.read_text().replace("algorithm: ppo", "algorithm: a2c"))
     with pytest.raises(ConfigError, match=r"algorithm: expected one of dqn, ppo, sac, td3, got 'a2c'"):
         load_experiment(path)
+
+
+def test_a_continuous_policy_file_records_its_algorithm_and_flies_the_same_command(tmp_path: Path) -> None:
+    import gymnasium as gym
+
+    from sitl_bridge.rl.learner.policy import policy_from_checkpoint
+    from sitl_bridge.rl.learner.policy_file import (
+        POLICY_FILE,
+        build_network,
+        online_tensors,
+        policy_bytes,
+        probe_q_values,
+    )
+    from sitl_bridge.rl.learner.sb3_learner import SB3Learner
+
+    for algorithm in ("sac", "td3", "ppo"):
+        learner = SB3Learner(algorithm, 5, gym.spaces.Box(-1, 1, (3,), np.float32),
+                             {"policy_kwargs": {"net_arch": [8]}}, seed=1)
+        network = online_tensors(learner.state_tensors())
+        shape = learner.shape.to_dict()
+        data = policy_bytes(network, shape, episode=7, exported_from="test",
+                            probe_q=probe_q_values(build_network(shape, network)))
+        (tmp_path / POLICY_FILE).write_bytes(data)
+        policy = policy_from_checkpoint(tmp_path / POLICY_FILE)
+        obs = np.array([0.5, -1.0, 2.0, 0.0, 1.0], dtype=np.float32)
+        assert (policy.algorithm, policy.continuous, policy.episode) == (algorithm, True, 7)
+        command = policy(obs)
+        assert command.shape == (3,) and np.all(np.abs(command) <= 1.0)
+        assert np.array_equal(command, learner.greedy(obs))

@@ -160,8 +160,11 @@ class SB3Network(nn.Module):
         batch = obs.reshape(-1, self.shape.obs_dim).to(torch.float32)
         if self.shape.continuous:
             action = self.policy._predict(batch, deterministic=True)
-            if not self.policy.squash_output:  # PPO's Gaussian: SB3 clips to the Box
-                action = torch.clamp(action, torch.tensor(self.shape.action_low), torch.tensor(self.shape.action_high))
+            low, high = torch.tensor(self.shape.action_low), torch.tensor(self.shape.action_high)
+            if self.policy.squash_output:  # SAC/TD3 act in [-1, 1]: unscaled to the Box as SB3's predict does
+                action = low + 0.5 * (action + 1.0) * (high - low)
+            else:  # PPO's Gaussian: SB3 clips to the Box
+                action = torch.clamp(action, low, high)
             scores = action
         else:
             scores = self.policy.get_distribution(batch).distribution.logits
