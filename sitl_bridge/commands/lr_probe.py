@@ -39,7 +39,7 @@ def main(args: argparse.Namespace) -> int:
         config = load_train_config(args.world, overrides_from_args(args))
         if config.algorithm != "dqn":
             raise ConfigError(f"lr-probe probes DQN's learning rate only (this config trains {config.algorithm}; "
-                              "give --algorithm dqn, or tune learning_rate in its train.{config.algorithm} mapping)")
+                              f"give --algorithm dqn, or tune learning_rate in its train.{config.algorithm} mapping)")
         result = probe(scenario_env_factory(args.world, args.autopilot), config, batches=args.batches,
                        epochs=args.epochs, rates=tuple(args.rates or DEFAULT_RATES), seed=args.seed)
     except ConfigError as exc:
