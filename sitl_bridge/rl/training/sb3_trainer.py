@@ -18,7 +18,10 @@ so `--resume` after `kill -9` continues exactly where the last checkpoint left o
 
 from __future__ import annotations
 
+import random
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -47,10 +50,8 @@ class SB3Trainer(Trainer):
     `rl/training/runs.py`, which picks the trainer of the config's algorithm)."""
 
     def __init__(self, run_dir: Path, spec: rd.RunSpec, config: TrainConfig, env_factory: EnvFactory,
-                 *, progress: bool = True, warn: Any = None, heartbeat: bool = False) -> None:
-        import random
-        import sys
-
+                 *, progress: bool = True, warn: Callable[[str], None] | None = None,
+                 heartbeat: bool = False) -> None:
         if config.num_envs != 1:
             raise ConfigError(f"train.num_envs: {config.algorithm} runs fly one copy at a time (set num_envs 1)")
         self.run_dir = Path(run_dir)
