@@ -48,6 +48,12 @@ def test_algorithm_comes_from_the_train_section_and_the_command_line_wins(tmp_pa
     assert (config.algorithm, config.sb3_arguments, config.experiment) == ("ppo", {"n_steps": 32}, "ppo")
     assert load_train_config(world, {"algorithm": "dqn"}).algorithm == "dqn"
     assert load_train_config(world, {"algorithm": "dqn"}).experiment == "dqn"
+    # DQN's own keys do not reach an SB3 algorithm: the plan says which are set and unused
+    from sitl_bridge.rl.training.train_plan import plan_lines
+
+    lines = plan_lines(load_train_config(world, {"gamma": 0.995, "layers": 2}))
+    assert "plan: ppo (Stable-Baselines3) with train.ppo = {'n_steps': 32} (SB3's defaults for the rest)" in lines
+    assert any(line.endswith("set them under train.ppo): gamma, layers") for line in lines)
 
 
 def test_an_unknown_sb3_argument_is_one_line_naming_the_key(tmp_path: Path) -> None:

@@ -37,6 +37,10 @@ ALGORITHMS = ("dqn", "ppo", "sac", "td3")
 """`dqn` is the project's own learner; the others are Stable-Baselines3's (`rl/learner/sb3_models.py`)."""
 SB3_SECTIONS = ("ppo", "sac", "td3")
 """`train:` keys holding one SB3 algorithm's constructor arguments each."""
+RUN_WIDE = frozenset({"algorithm", "experiment", "episodes", "eval_episodes", "eval_every", "stop_on_success",
+                      "stop_confirm_episodes", "checkpoints_kept", "success_window", "torch_threads", "device",
+                      "num_envs", *SB3_SECTIONS})
+"""Fields every algorithm reads; the others are DQN's own hyperparameters."""
 
 
 SAFE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
@@ -159,6 +163,15 @@ class TrainConfig:
         if self.experiment in ALGORITHMS and self.experiment != self.algorithm:
             object.__setattr__(self, "experiment", self.algorithm)  # name the run after what trains
         self.validate()
+
+    def unused_dqn_settings(self) -> list[str]:
+        """DQN hyperparameters set away from their defaults in a config that trains an SB3
+        algorithm (which reads only its own mapping): what a user may expect to apply and does not."""
+        if self.algorithm == "dqn":
+            return []
+        defaults = TrainConfig()
+        return [f.name for f in dataclasses.fields(self)
+                if f.name not in RUN_WIDE and getattr(self, f.name) != getattr(defaults, f.name)]
 
     @property
     def sb3_arguments(self) -> dict[str, Any]:

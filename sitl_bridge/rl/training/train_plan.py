@@ -15,6 +15,12 @@ def plan_lines(config: TrainConfig, done: int = 0) -> list[str]:
     left = max(config.episodes - done, 0)
     lines = [f"plan: at most {config.episodes} training episodes (--episodes is a cap)"
              + (f", {left} left after episode {done}" if done else "")]
+    if config.algorithm != "dqn":
+        lines.append(f"plan: {config.algorithm} (Stable-Baselines3) with train.{config.algorithm} = "
+                     f"{config.sb3_arguments or '{}'} (SB3's defaults for the rest)")
+        if config.unused_dqn_settings():
+            lines.append(f"plan: not used by {config.algorithm} (DQN's hyperparameters; set them under "
+                         f"train.{config.algorithm}): {', '.join(config.unused_dqn_settings())}")
     evaluates = config.eval_every > 0 and config.eval_episodes > 0
     if evaluates:
         lines.append(f"plan: a greedy evaluation of {config.eval_episodes} episodes every {config.eval_every} "
