@@ -250,3 +250,34 @@ def test_a_continuous_policy_file_records_its_algorithm_and_flies_the_same_comma
         command = policy(obs)
         assert command.shape == (3,) and np.all(np.abs(command) <= 1.0)
         assert np.array_equal(command, learner.greedy(obs))
+
+
+def test_td3_stopped_and_resumed_in_process_ends_as_an_uninterrupted_run(tmp_path: Path) -> None:
+    from sitl_bridge.rl.common.drones_env import scenario_env_factory
+    from sitl_bridge.rl.training.run_dir import RunSpec
+    from sitl_bridge.rl.training.runs import resume_run, start_run
+
+    td3 = {"buffer_size": 40, "learning_starts": 10, "batch_size": 8, "policy_delay": 2,
+           "action_noise": {"type": "normal", "sigma": 0.2}, "policy_kwargs": {"net_arch": [8]}}
+    world = scenario(tmp_path, "obstacle_continuous.yaml", {"algorithm": "td3", "td3": td3, "episodes": 4,
+                                                             "eval_every": 2, "eval_episodes": 1}, max_time_s=2)
+    config = load_train_config(world)
+    spec = RunSpec(world=str(world), seed=2)
+    runs = {}
+    for name, first_session in (("whole", 4), ("resumed", 2)):
+        with start_run(tmp_path / name, spec, config, scenario_env_factory(world), progress=False) as trainer:
+            trainer.train(on_episode=lambda _records, t=trainer, n=first_session: t.episode < n)
+            runs[name] = trainer.run_dir
+    with resume_run(runs["resumed"], progress=False) as trainer:
+        assert trainer.episode == 2
+        trainer.train()
+        assert trainer.learner.updates > 0 and trainer.learner.model._n_updates > 1
+    assert_same_run(runs["resumed"], runs["whole"])
+
+
+def test_sb3_refuses_a_multi_drone_scenario_in_one_line(tmp_path: Path) -> None:
+    result = sitl_bridge("train", "worlds/two_drones_empty.yaml", "--algorithm", "ppo", "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1].endswith(
+        "ppo trains single-drone scenarios only (this one has 2 drones; train it with dqn)")
+    assert not any(tmp_path.iterdir())
