@@ -244,6 +244,8 @@ def test_a_continuous_policy_file_records_its_algorithm_and_flies_the_same_comma
         data = policy_bytes(network, shape, episode=7, exported_from="test",
                             probe_q=probe_q_values(build_network(shape, network)))
         (tmp_path / POLICY_FILE).write_bytes(data)
+        header = json.loads(data[8:8 + int.from_bytes(data[:8], "little")])
+        assert header["__metadata__"]["algorithm"] == algorithm
         policy = policy_from_checkpoint(tmp_path / POLICY_FILE)
         obs = np.array([0.5, -1.0, 2.0, 0.0, 1.0], dtype=np.float32)
         assert (policy.algorithm, policy.continuous, policy.episode) == (algorithm, True, 7)

@@ -98,7 +98,7 @@ def policy_bytes(network: dict[str, torch.Tensor], shape: dict[str, Any], *, epi
     tensors = {k: v.detach().cpu().contiguous().clone() for k, v in network.items()}
     tensors[PROBE_TENSOR] = probe_q.detach().cpu().contiguous().clone()
     metadata = {"format": FORMAT, "network": json.dumps(shape, sort_keys=True), "episode": str(int(episode)),
-                "exported_from": exported_from}
+                "exported_from": exported_from, "algorithm": network_algorithm(shape)}
     metadata["sha256"] = _file_digest(tensors, metadata)
     return safetensors.torch.save(tensors, metadata=metadata)
 
@@ -156,6 +156,10 @@ def parse_policy(data: bytes, source: str = "policy") -> tuple[dict[str, torch.T
         if _file_digest(tensors, metadata) != metadata.get("sha256"):
             raise PolicyFileError("checksum mismatch (file damaged)")
         shape = json.loads(metadata["network"])
+        # files written before the field: their network is what the shape says (no algorithm: dqn)
+        if metadata.get("algorithm", network_algorithm(shape)) != network_algorithm(shape):
+            raise PolicyFileError(f"says it holds a {metadata['algorithm']} network, but its shape is a "
+                                  f"{network_algorithm(shape)} one")
         expected = tensors.pop(PROBE_TENSOR, None)
         if expected is None:
             raise PolicyFileError(f"no {PROBE_TENSOR} tensor to check the network against")
@@ -168,6 +172,7 @@ def parse_policy(data: bytes, source: str = "policy") -> tuple[dict[str, torch.T
     except PolicyFileError as exc:
         raise PolicyFileError(f"{source}: {exc}") from None
     state = {"network": shape, "episode": int(metadata["episode"]), "policy_only": True,
+             "algorithm": network_algorithm(shape),
              "exported_from": metadata.get("exported_from", "")}
     return {ONLINE + k: v for k, v in tensors.items()}, state
 
