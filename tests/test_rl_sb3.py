@@ -133,13 +133,14 @@ def test_sac_killed_9_mid_run_resumes_exactly_with_the_same_replay(tmp_path: Pat
 
 
 # -- every command after training -------------------------------------------------------------------
-def cli(capsys: pytest.CaptureFixture, *argv: str) -> str:
+def cli(capsys: pytest.CaptureFixture, *argv: str, stdout_only: bool = False) -> str:
     from sitl_bridge.cli import main
 
+    capsys.readouterr()  # what earlier calls printed is not this command's
     code = main(list(argv))
     out = capsys.readouterr()
     assert code == 0, out.err[-2000:]
-    return out.out + out.err
+    return out.out if stdout_only else out.out + out.err
 
 
 def _tiny_run(out: Path, world: Path, seed: int) -> Path:
@@ -170,8 +171,8 @@ def test_a_tiny_ppo_run_goes_through_every_command_after_training(tmp_path: Path
     state = resolve_checkpoint(run)[2]
     assert state["network"]["algorithm"] == "ppo"
 
-    evaluated = cli(capsys, "eval", str(run), "--episodes", "2", "--json")
-    assert json.loads(evaluated[evaluated.index("{"):evaluated.rindex("}") + 1])["episodes"] == 2
+    evaluated = cli(capsys, "eval", str(run), "--episodes", "2", "--json", stdout_only=True)
+    assert json.loads(evaluated)["episodes"] == 2
     cli(capsys, "plot", *map(str, runs), "--out", str(tmp_path / "curves.png"))
     assert (tmp_path / "curves.png").stat().st_size > 1000
     cli(capsys, "replay", str(run), "--episode", "1", "--greedy", "--out", str(tmp_path / "greedy.png"))
