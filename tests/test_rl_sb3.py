@@ -104,12 +104,13 @@ def _kill_and_resume(tmp_path: Path, world: Path, kill_after: int, args: list[st
 
 
 def test_ppo_killed_9_mid_run_resumes_exactly(tmp_path: Path) -> None:
-    world = scenario(tmp_path, "empty.yaml", {"algorithm": "ppo", "ppo": PPO_TINY, "experiment": "ppo"})
-    run_dir, reference = _kill_and_resume(tmp_path, world, 3, ["--episodes", "7", "--eval-every", "2",
-                                                               "--eval-episodes", "2"])
+    ppo = {**PPO_TINY, "n_steps": 8, "batch_size": 4}
+    world = scenario(tmp_path, "empty.yaml", {"algorithm": "ppo", "ppo": ppo, "experiment": "ppo"}, max_steps=8)
+    run_dir, reference = _kill_and_resume(tmp_path, world, 2, ["--episodes", "5", "--eval-every", "2",
+                                                               "--eval-episodes", "1"])
     records = _jsonl(run_dir / "episodes.jsonl")
-    assert [r["episode"] for r in records] == list(range(7))
-    assert records[-1]["global_step"] > 2 * PPO_TINY["n_steps"]  # PPO updated several times, across the kill
+    assert [r["episode"] for r in records] == list(range(5))
+    assert records[-1]["global_step"] > 2 * ppo["n_steps"]  # PPO updated several times, across the kill
     assert any(r["mean_loss"] is not None for r in records)
     assert_same_run(run_dir, reference)  # same episodes (actions), evaluations, weights, optimizer, rollout
 
