@@ -10,6 +10,7 @@ import pytest
 
 from sitl_bridge.physics import MotorCommand, Simulation
 from sitl_bridge.sensors.lidar import Lidar, LidarConfig, ray_directions_flu, ray_labels
+from sitl_bridge.sensors.ray_reach import REACH_MARGIN_M, rays_that_may_hit
 from sitl_bridge.world import load_world
 
 WORLDS = Path(__file__).resolve().parents[1] / "worlds"
@@ -153,3 +154,60 @@ def test_ray_labels_name_each_direction_as_it_points() -> None:
     for group, rays, where in (("up", up, "above"), ("down", down, "below")):
         for label, (x, _, _) in zip(labels[group], rays, strict=True):
             assert label.startswith(where) and (label.endswith("ahead") == (x > 0.1))
+
+
+def _random_quaternion(rng: np.random.Generator, max_tilt_rad: float) -> tuple[float, ...]:
+    """A random heading with a random tilt up to `max_tilt_rad` (w, x, y, z; ENU/FLU)."""
+    yaw, tilt, axis = rng.uniform(-math.pi, math.pi), rng.uniform(0.0, max_tilt_rad), rng.uniform(-math.pi, math.pi)
+    qz = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+    qt = (math.cos(tilt / 2), math.cos(axis) * math.sin(tilt / 2), math.sin(axis) * math.sin(tilt / 2), 0.0)
+    w1, x1, y1, z1 = qz
+    w2, x2, y2, z2 = qt
+    return (w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2)
+
+
+@pytest.mark.parametrize("world", ["obstacle.yaml", "window.yaml", "street.yaml", "two_drones_window.yaml"])
+def test_the_pruned_scan_is_the_full_cast_bit_for_bit(world: str) -> None:
+    """Casting only the rays whose segment meets a bounding box or the ground gives the same
+    scans as casting every ray: ranges, flags and who caused a crash, anywhere in the workspace
+    (near the ground, inside the clutter, tilted), with movers and other vehicles about."""
+    rng = np.random.default_rng(4)
+    with Simulation(load_world(WORLDS / world), seed=2) as sim:
+        pruned, full = Lidar(sim), Lidar(sim)
+        full.prune = False
+        low, high = np.array(sim.world.workspace.min_m), np.array(sim.world.workspace.max_m)
+        skipped = 0
+        for k in range(150):
+            for i in range(sim.num_vehicles):
+                position = rng.uniform(low, high)
+                position[2] = rng.uniform(0.05, min(high[2], 6.0))
+                if i and k % 3 == 0:  # now and then right beside the first vehicle
+                    position = np.array(sim.state(0).position_enu_m) + rng.uniform(-0.6, 0.6, 3)
+                sim.place_vehicle(i, position, quaternion_enu_flu=_random_quaternion(rng, 0.6))
+            if k % 10 == 0:  # movers move on
+                sim.step([MotorCommand.disarmed()] * sim.num_vehicles)
+            for a, b in zip(pruned.scan(), full.scan(), strict=True):
+                for group in ("horizontal_m", "up_m", "down_m"):
+                    np.testing.assert_array_equal(getattr(a, group), getattr(b, group))
+                assert (a.near, a.crash, a.min_m, a.crash_by_vehicles) == (b.near, b.crash, b.min_m,
+                                                                           b.crash_by_vehicles)
+            boxes, owners = sim.body_boxes()
+            skipped += int(np.sum(~rays_that_may_hit(pruned._starts, pruned._ends, pruned._owners, boxes, owners,
+                                                     sim.has_ground, REACH_MARGIN_M)))
+        assert skipped > 0  # the prune does skip rays (else this test compares a cast with itself)
+
+
+def test_a_ray_is_cast_only_when_it_may_reach_something():
+    boxes = np.array([[1.0, -1.0, 0.0, 2.0, 1.0, 2.0], [-0.2, -0.2, 0.8, 0.2, 0.2, 1.2]])
+    owners = np.array([-1, 0])  # the second box is vehicle 0's own body
+    starts = np.zeros((5, 3)) + (0.0, 0.0, 1.0)
+    ends = starts + np.array([[5.0, 0, 0], [-5.0, 0, 0], [0, 0, 5.0], [0, 0, -0.95], [0, 0, -1.5]])
+    ray_owner = np.zeros(5, dtype=np.int64)
+    may = rays_that_may_hit(starts, ends, ray_owner, boxes, owners, True, REACH_MARGIN_M)
+    # east: the box; west, up: nothing (the own body does not count); down 0.95 m: within the
+    # margin of the ground; down 1.5 m: through it
+    assert may.tolist() == [True, False, False, True, True]
+    assert rays_that_may_hit(starts, ends, ray_owner + 1, boxes, owners, False, 0.0).tolist() == [True] * 5
+    ends[1, 0] = math.nan
+    assert rays_that_may_hit(starts, ends, ray_owner, boxes, owners, False, 0.0)[1]

@@ -306,6 +306,26 @@ class Simulation:
         v = self._vehicles[vehicle]
         return v.position, tuple(v.x[QUAT:QUAT + 4].tolist())  # type: ignore[return-value]
 
+    def body_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding boxes of every body but the ground as pybullet has them now
+        (margins included): an (n, 6) array of rows (min x, y, z, max x, y, z), and per row the
+        vehicle it belongs to (-1: an obstacle). The static obstacles' boxes are the ones taken
+        when the episode was built (they never move); movers' and vehicles' are read now. For
+        cheap tests of what a ray could hit (`sensors.ray_reach`); the ground is the plane
+        z = 0 when `has_ground`."""
+        cid = self.client_id
+        rows = list(self._static_boxes)
+        rows += [(*lo, *hi) for lo, hi in (p.getAABB(body, physicsClientId=cid) for body, _ in self._movers)]
+        rows += [(*lo, *hi) for lo, hi in (p.getAABB(v.body, physicsClientId=cid) for v in self._vehicles)]
+        owners = np.full(len(rows), -1, dtype=np.int64)
+        owners[len(rows) - len(self._vehicles):] = np.arange(len(self._vehicles))
+        return np.array(rows, dtype=float).reshape(-1, 6), owners
+
+    @property
+    def has_ground(self) -> bool:
+        """Whether the world has its ground plane at z = 0."""
+        return self._ground >= 0
+
     def collisions(self) -> list[Collision]:
         """Collisions detected during the last step."""
         return list(self._collisions)

@@ -23,6 +23,7 @@ import numpy as np
 from sitl_bridge.frames import quat_to_matrix_t
 from sitl_bridge.physics.bullet import p
 from sitl_bridge.physics.simulation import Simulation
+from sitl_bridge.sensors.ray_reach import REACH_MARGIN_M, rays_that_may_hit
 from sitl_bridge.world.schema import LidarConfig
 
 __all__ = ["Lidar", "LidarConfig", "LidarScan", "ray_directions_flu", "ray_labels"]
@@ -120,6 +121,10 @@ class Lidar:
         self._ends = np.zeros((int(bounds[-1]), 3))
         self._history: list[collections.deque[np.ndarray]] = [
             collections.deque(maxlen=c.filter_window) for c in self.configs]
+        self._owners = np.repeat(np.arange(len(sizes), dtype=np.int64), sizes)  # the vehicle casting each ray
+        self.prune = True
+        """Cast only the rays that may hit something (`sensors.ray_reach`); False: every ray
+        (the reference the pruned scan matches bit for bit)."""
 
     def reset(self) -> None:
         """Forget the moving-average history (call after `Simulation.reset`)."""
@@ -127,7 +132,8 @@ class Lidar:
             h.clear()
 
     def scan(self) -> list[LidarScan]:
-        """Cast every vehicle's rays at the current simulation state, one batch for all."""
+        """Cast every vehicle's rays at the current simulation state, one batch for all (with
+        `prune`, only the rays that may hit something: the others have the no-hit answer)."""
         starts, ends = self._starts, self._ends
         for i, scaled in enumerate(self._scaled):
             a, b = self._slices[i]
@@ -136,11 +142,7 @@ class Lidar:
             starts[a:b] = position
             np.matmul(scaled, rotation.T, out=ends[a:b])
             ends[a:b] += position
-        # pybullet reads numpy arrays directly (no list conversion)
-        results = p.rayTestBatch(starts, ends, physicsClientId=self.sim.client_id) if len(starts) else ()
-        fractions = np.fromiter(map(_HIT_FRACTION, results), dtype=float, count=len(results))
-        hit_vehicle = np.isin(np.fromiter(map(_HIT_BODY, results), dtype=np.int64, count=len(results)),
-                              self.sim.vehicle_bodies)
+        fractions, bodies = self._cast(starts, ends)
         scans = []
         offset = 0
         for i, c in enumerate(self.configs):
@@ -151,17 +153,38 @@ class Lidar:
             history.append(ranges)
             if len(history) > 1:
                 ranges = np.mean(history, axis=0)
-            scans.append(self._make_scan(c, ranges, i, hit_vehicle[offset - n:offset]))
+            scans.append(self._make_scan(c, ranges, i, bodies[offset - n:offset]))
         return scans
 
-    def _make_scan(self, c: LidarConfig, ranges: np.ndarray, vehicle: int, hit_vehicle: np.ndarray) -> LidarScan:
+    def _cast(self, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per ray: pybullet's hit fraction (1: no hit) and the body hit (-1: none)."""
+        count = len(starts)
+        if not count:
+            return np.ones(0), np.full(0, -1, dtype=np.int64)
+        cid = self.sim.client_id
+        if not self.prune:
+            results = p.rayTestBatch(starts, ends, physicsClientId=cid)  # reads numpy arrays directly
+            return (np.fromiter(map(_HIT_FRACTION, results), dtype=float, count=count),
+                    np.fromiter(map(_HIT_BODY, results), dtype=np.int64, count=count))
+        boxes, box_owners = self.sim.body_boxes()
+        cast = np.flatnonzero(rays_that_may_hit(starts, ends, self._owners, boxes, box_owners, self.sim.has_ground,
+                                                REACH_MARGIN_M))
+        fractions = np.ones(count)
+        bodies = np.full(count, -1, dtype=np.int64)
+        if len(cast):
+            results = p.rayTestBatch(starts[cast], ends[cast], physicsClientId=cid)
+            fractions[cast] = np.fromiter(map(_HIT_FRACTION, results), dtype=float, count=len(cast))
+            bodies[cast] = np.fromiter(map(_HIT_BODY, results), dtype=np.int64, count=len(cast))
+        return fractions, bodies
+
+    def _make_scan(self, c: LidarConfig, ranges: np.ndarray, vehicle: int, bodies: np.ndarray) -> LidarScan:
         a, b = self._splits[vehicle]
         mask = self._flag_masks[vehicle]
         flagged = ranges[mask]
         min_m = float(flagged.min()) if flagged.size else c.range_m
         crash = min_m < c.crash_m
         # which drone a crash between drones is charged to depends on whether only drones caused it
-        by_vehicles = crash and bool(np.all(hit_vehicle[mask & (ranges < c.crash_m)]))
+        by_vehicles = crash and bool(np.all(np.isin(bodies[mask & (ranges < c.crash_m)], self.sim.vehicle_bodies)))
         return LidarScan(horizontal_m=ranges[:a].copy(), up_m=ranges[a:b].copy(), down_m=ranges[b:].copy(),
                          near=min_m < c.near_m, crash=crash, min_m=min_m, time_us=self.sim.time_us,
                          crash_by_vehicles=by_vehicles)
