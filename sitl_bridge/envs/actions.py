@@ -39,7 +39,7 @@ from gymnasium import spaces
 
 from sitl_bridge.client.actions import NUM_ACTIONS, Action, action_velocity_ned
 from sitl_bridge.envs.task import ActionConfig
-from sitl_bridge.frames import enu_to_ned, wrap_pi
+from sitl_bridge.frames import enu_to_ned, enu_to_ned_xyz, wrap_pi
 
 
 def action_space(config: ActionConfig) -> spaces.Space:
@@ -85,7 +85,7 @@ def velocity_command(action: np.ndarray, *, config: ActionConfig, yaw_enu_rad: f
     elif config.frame == "body":
         velocity_enu = _turn(velocity_enu, wrap_pi(yaw_enu_rad - math.pi / 2.0))  # y axis = the nose
     rate = float(action[3]) * math.radians(config.max_yaw_rate_deg_s) if config.size == 4 else 0.0
-    return enu_to_ned(velocity_enu), rate
+    return np.array(enu_to_ned_xyz(*velocity_enu.tolist())), rate
 
 _SWAP = {Action.EAST: Action.WEST, Action.WEST: Action.EAST,
          Action.SOUTH: Action.NORTH, Action.NORTH: Action.SOUTH}

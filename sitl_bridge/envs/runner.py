@@ -18,6 +18,7 @@ from sitl_bridge.client.actions import Action
 from sitl_bridge.envs.actions import action_velocity, normalised_action, velocity_command
 from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend, Snapshot
+from sitl_bridge.envs.features import ObservationAssembler
 from sitl_bridge.envs.options import EnvOptions
 from sitl_bridge.envs.path_distance import PathField, Unreachable, path_field
 from sitl_bridge.envs.priority import priorities
@@ -26,7 +27,7 @@ from sitl_bridge.envs.task import ActionConfig, EndConfig
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.envs.watched_flight import fly_watched
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.frames import quat_to_euler, wrap_pi, yaw_enu_to_ned
+from sitl_bridge.frames import quat_to_euler_t, wrap_pi, yaw_enu_to_ned
 from sitl_bridge.sensors.lidar import LidarScan
 from sitl_bridge.world import GoalPlacement
 
@@ -51,15 +52,25 @@ def _ground_contact(view: DroneView, end: EndConfig) -> bool:
             and float(view.position_enu_m[2]) < end.ground_contact_m)
 
 
-def _inside(goal: GoalPlacement, position: np.ndarray, margin_m: float) -> bool:
-    center = np.asarray(goal.center_m)
-    half = np.asarray(goal.size_m) / 2.0 + margin_m
-    return bool(np.all(np.abs(position - center) <= half))
+def _inside(goal: GoalPlacement, position: list[float], margin_m: float) -> bool:
+    # per axis in plain floats: the same IEEE operations as the array form, a tenth of its cost
+    return all(abs(p - c) <= s / 2.0 + margin_m
+               for p, c, s in zip(position, goal.center_m, goal.size_m, strict=True))
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array
+
+
+_NO_OTHERS = (_frozen(np.zeros(0)), _frozen(np.zeros((0, 3))), _frozen(np.zeros((0, 3))),
+              _frozen(np.zeros(0, dtype=bool)))
+"""A one-drone view's other_priorities, others' positions and velocities, others_in_airspace."""
 
 
 def _yaw_enu(state: Any) -> float:
     """A vehicle state's true heading (ENU yaw, rad)."""
-    return float(quat_to_euler(state.quaternion_enu_flu)[2])
+    return quat_to_euler_t(state.quaternion_enu_flu.tolist())[2]
 
 
 def _rays(scan: LidarScan) -> dict[str, np.ndarray]:
@@ -90,6 +101,8 @@ class EpisodeRunner:
         self._previous_actions: list[np.ndarray | None] = [None] * self.num_drones
         self._yaw_targets_enu: list[float] = [0.0] * self.num_drones
         """Per drone, the heading setpoint (ENU yaw) that `yaw: rate` actions move."""
+        self._observe = ObservationAssembler(scenario.task.observation)
+        self._others = [[j for j in range(self.num_drones) if j != i] for i in range(self.num_drones)]
 
     @classmethod
     def open(cls, scenario: Scenario, options: EnvOptions, backend: Backend | None = None) -> EpisodeRunner:
@@ -294,9 +307,11 @@ class EpisodeRunner:
     def _score(self, i: int, snapshot: Snapshot, before: Snapshot, action: Any, *, crashed: bool,
                by_drones_only: bool, flying: list[bool]) -> DroneResult:
         end = self.scenario.task.end
-        view = self._view(i, snapshot, before, crashed=crashed)
         if isinstance(action, np.ndarray):
-            view = dataclasses.replace(view, action=action, previous_action=self._previous_actions[i])
+            view = self._view(i, snapshot, before, crashed=crashed, action=action,
+                              previous_action=self._previous_actions[i])
+        else:
+            view = self._view(i, snapshot, before, crashed=crashed)
         if not crashed and _ground_contact(view, end):
             view = dataclasses.replace(view, crashed=True)
         outcome: str | None = None
@@ -347,43 +362,48 @@ class EpisodeRunner:
             fields.append(field_)
         return fields
 
-    def _view(self, i: int, snapshot: Snapshot, before: Snapshot, *, crashed: bool) -> DroneView:
-        """Drone `i` in `snapshot`, one action after `before` (at reset both are the same)."""
+    def _view(self, i: int, snapshot: Snapshot, before: Snapshot, *, crashed: bool, action: np.ndarray | None = None,
+              previous_action: np.ndarray | None = None) -> DroneView:
+        """Drone `i` in `snapshot`, one action after `before` (at reset both are the same), with
+        the continuous `action` flown (and the one before it) when there is one."""
         end = self.scenario.task.end
         state = snapshot.states[i]
         scan = snapshot.scans[i]
         position = np.asarray(state.position_enu_m, dtype=float)
-        others = [j for j in range(self.num_drones) if j != i]
-        workspace = self.scenario.world.workspace
+        xyz = position.tolist()  # plain floats for the scalar tests below
+        others = self._others[i]
         _, ranks = self._ranks(snapshot)
+        if others:
+            other_priorities = ranks[others]
+            others_position = np.array([snapshot.states[j].position_enu_m for j in others], dtype=float)
+            others_velocity = np.array([snapshot.states[j].velocity_enu_m_s for j in others], dtype=float)
+            in_airspace = np.array([not self._left_airspace(j) for j in others], dtype=bool)
+        else:  # one drone: the same empty arrays every step
+            other_priorities, others_position, others_velocity, in_airspace = _NO_OTHERS
         return DroneView(
             index=i,
             position_enu_m=position,
             previous_position_enu_m=np.asarray(before.states[i].position_enu_m, dtype=float),
-            euler_enu_rad=quat_to_euler(state.quaternion_enu_flu),
+            euler_enu_rad=np.array(quat_to_euler_t(state.quaternion_enu_flu.tolist())),
             velocity_enu_m_s=np.asarray(state.velocity_enu_m_s, dtype=float),
             start_enu_m=self._starts[i],
             goal_enu_m=self._goals[i],
             lidar=_rays(scan),
             previous_lidar=None if before is snapshot else _rays(before.scans[i]),
             priority=float(ranks[i]),
-            other_priorities=ranks[others],
-            others_position_enu_m=np.array([snapshot.states[j].position_enu_m for j in others],
-                                           dtype=float).reshape(-1, 3),
-            others_velocity_enu_m_s=np.array([snapshot.states[j].velocity_enu_m_s for j in others],
-                                             dtype=float).reshape(-1, 3),
-            others_in_airspace=np.array([not self._left_airspace(j) for j in others], dtype=bool),
+            other_priorities=other_priorities,
+            others_position_enu_m=others_position,
+            others_velocity_enu_m_s=others_velocity,
+            others_in_airspace=in_airspace,
             crashed=crashed,
             near_obstacle=bool(scan.near),
-            reached_goal=_inside(snapshot.goals[i], position, end.goal_margin_m),
-            out_of_workspace=end.out_of_workspace and not workspace.contains(position),
+            reached_goal=_inside(snapshot.goals[i], xyz, end.goal_margin_m),
+            out_of_workspace=end.out_of_workspace and not self.scenario.world.workspace.contains(xyz),
             step=self.step_count,
+            action=action,
+            previous_action=previous_action,
             path_distance=None if self._paths[i] is None else self._paths[i].distance,
         )
-
-    def _observe(self, view: DroneView) -> np.ndarray:
-        parts = [feature(view) for feature in self.scenario.task.observation]
-        return np.concatenate(parts).astype(np.float32)
 
     def _info(self, view: DroneView, outcome: str | None, terms: dict[str, float],
               action: Any) -> dict[str, Any]:

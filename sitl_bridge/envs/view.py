@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -72,7 +73,7 @@ class DroneView:
     """Length of the shortest obstacle-free path (m) from a point to this drone's goal region
     (`envs/path_distance.py`), given when a reward term reads it (`closer_to_goal: {along: path}`)."""
 
-    @property
+    @cached_property  # read by the reward and the info: worked out once
     def distance_to_goal_m(self) -> float:
         return float(np.linalg.norm(self.goal_enu_m - self.position_enu_m))
 
