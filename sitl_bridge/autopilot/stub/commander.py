@@ -5,10 +5,11 @@ turns the current mode into a `Setpoint` for the position controller and says wh
 motors are off (disarmed), idling (armed on the ground) or flying.
 
 Steady steps (`steady`, `plan`): after a step that flew on in OFFBOARD (no yaw-rate
-integration), AUTO.TAKEOFF or AUTO.LOITER with no ground contact suspected, the next steps
-change nothing but the clock as long as the offboard setpoint stays fresh, the takeoff
-altitude is not reached and no ground contact appears; after a disarmed step, as long as the
-home needs no setting. The commander publishes that case as a float64 vector (`plan`) that a
+integration), AUTO.TAKEOFF or AUTO.LOITER with no ground contact (at most one suspected, the land
+detector's first stage), the next steps change nothing but the clock as long as the offboard
+setpoint stays fresh, the takeoff altitude is not reached and the ground contact test gives what
+it gave (no contact; or a suspicion still within its first stage, as after every descent command
+while the vehicle gathers speed); after a disarmed step, as long as the home needs no setting. The commander publishes that case as a float64 vector (`plan`) that a
 compiled per-step loop tests with `steady_output` (the same predicates `step` uses); any
 command, and any step that does not go on so, withdraws it.
 """
@@ -87,11 +88,13 @@ _TAKEOFF_ACCEPT_M = 0.3  # takeoff done when this close to the target altitude
 
 # Commander.plan layout (float64): the setpoint flown (position, velocity, yaw, yaw-rate
 # feed-forward with NaN as 0, climb and descent limits), the mode (_PLAN_*), when the offboard
-# setpoint arrived (us) and COM_OF_LOSS_T, the takeoff altitude (NED z), LNDMC_Z/XY_VEL_MAX, and
-# (disarmed) whether the home is still to be set
+# setpoint arrived (us) and COM_OF_LOSS_T, the takeoff altitude (NED z), LNDMC_Z/XY_VEL_MAX,
+# (disarmed) whether the home is still to be set, and since when the land detector suspects a
+# ground contact (us, -1: no suspicion) with how long its first stage lasts (us)
 (PLAN_POS, PLAN_VEL, PLAN_YAW, PLAN_YAW_RATE_FF, PLAN_UP_MAX, PLAN_DOWN_MAX, _PLAN_MODE, _OFFBOARD_US, _LOSS_S,
- _TAKEOFF_Z, _LND_Z_VEL, _LND_XY_VEL, _HOME_MISSING) = 0, 3, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16
-PLAN_SIZE = 17
+ _TAKEOFF_Z, _LND_Z_VEL, _LND_XY_VEL, _HOME_MISSING, _CONTACT_SINCE_US, _CONTACT_STAGE_US) = (
+    0, 3, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18)
+PLAN_SIZE = 19
 _PLAN_OFFBOARD, _PLAN_TAKEOFF, _PLAN_HOLD, _PLAN_OFF = 1.0, 2.0, 3.0, 4.0
 # what `steady_output` finds
 NOT_STEADY, STEADY_FLY, STEADY_OFF = 0, 1, 2
@@ -133,8 +136,14 @@ def steady_output(plan: np.ndarray, time_us: int, z: float, vn: float, ve: float
         return NOT_STEADY
     if mode == _PLAN_TAKEOFF and takeoff_reached(z, plan[_TAKEOFF_Z]):
         return NOT_STEADY
+    since = plan[_CONTACT_SINCE_US]
     if ground_contact(plan[PLAN_VEL + 2], plan[PLAN_POS + 2], z, vn, ve, vd, plan[_LND_Z_VEL], plan[_LND_XY_VEL]):
-        return NOT_STEADY
+        # steady only while the suspicion goes on in the land detector's first stage (it stays
+        # a suspicion: nothing changes); its start and its end are the commander's to decide
+        if since < 0.0 or time_us - since >= plan[_CONTACT_STAGE_US]:
+            return NOT_STEADY
+    elif since >= 0.0:
+        return NOT_STEADY  # the suspicion ends: the commander clears it
     return STEADY_FLY
 
 
@@ -442,7 +451,7 @@ class Commander:
             self._ground_z_m = e.position_ned_m[2]
             self._text(6, "Landing detected")
             return Output.IDLE, sp
-        if self._contact_since_us is None:  # no ground contact suspected (maybe_landed neither)
+        if not self.ground_contact:  # no ground contact, at most suspected (maybe_landed neither)
             self._publish(sp)
         return Output.FLY, sp
 
@@ -466,7 +475,8 @@ class Commander:
         plan[:] = (*sp.position_ned_m, *sp.velocity_ned_m_s, sp.yaw_rad,
                    0.0 if yaw_rate_ff != yaw_rate_ff else yaw_rate_ff, sp.max_velocity_up_m_s,
                    sp.max_velocity_down_m_s, plan[_PLAN_MODE], self.offboard.time_us, p["COM_OF_LOSS_T"],
-                   self._takeoff_target[2], p["LNDMC_Z_VEL_MAX"], p["LNDMC_XY_VEL_MAX"], 0.0)
+                   self._takeoff_target[2], p["LNDMC_Z_VEL_MAX"], p["LNDMC_XY_VEL_MAX"], 0.0,
+                   -1.0 if self._contact_since_us is None else self._contact_since_us, self._contact_stage_us())
         self.steady = True
 
     def _offboard_failsafe(self) -> None:
@@ -502,11 +512,15 @@ class Commander:
         pz = sp.position_ned_m[2]
         return (_finite(vz) and vz < -0.2) or (_finite(pz) and pz < e.position_ned_m[2] - 0.3)
 
+    def _contact_stage_us(self) -> float:
+        """How long each stage of the land detector lasts (us)."""
+        return self.params.values["LNDMC_TRIG_TIME"] * self._LAND_STAGE_FRACTION * 1e6
+
     def _land_detector(self, e: Estimate, sp: Setpoint, thrust_collective: float) -> None:
         """PX4-like: ground contact (descent commanded, no vertical motion), then maybe landed
         (thrust forced low, still no motion), then landed; each stage a third of LNDMC_TRIG_TIME."""
         p = self.params.values
-        stage_us = p["LNDMC_TRIG_TIME"] * self._LAND_STAGE_FRACTION * 1e6
+        stage_us = self._contact_stage_us()
         v = e.velocity_ned_m_s
         if not ground_contact(sp.velocity_ned_m_s[2], sp.position_ned_m[2], e.position_ned_m[2], v[0], v[1], v[2],
                               p["LNDMC_Z_VEL_MAX"], p["LNDMC_XY_VEL_MAX"]):
