@@ -306,20 +306,24 @@ class Simulation:
         v = self._vehicles[vehicle]
         return v.position, tuple(v.x[QUAT:QUAT + 4].tolist())  # type: ignore[return-value]
 
-    def body_boxes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Axis-aligned bounding boxes of every body but the ground as pybullet has them now
-        (margins included): an (n, 6) array of rows (min x, y, z, max x, y, z), and per row the
-        vehicle it belongs to (-1: an obstacle). The static obstacles' boxes are the ones taken
-        when the episode was built (they never move); movers' and vehicles' are read now. For
-        cheap tests of what a ray could hit (`sensors.ray_reach`); the ground is the plane
-        z = 0 when `has_ground`."""
+    def body_boxes(self, *, vehicles: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding boxes of every body but the ground (and but the vehicles unless
+        `vehicles`) as pybullet has them now (margins included): an (n, 6) array of rows (min x,
+        y, z, max x, y, z), and per row the vehicle it belongs to (-1: an obstacle). The static
+        obstacles' boxes are the ones taken when the episode was built (they never move; with
+        nothing else to add, the same read-only arrays every call); movers' and vehicles' are
+        read now. For cheap tests of what a ray could hit (`sensors.ray_reach`); the ground is
+        the plane z = 0 when `has_ground`."""
+        static, static_owners = self._static_box_rows
+        if not self._movers and not vehicles:
+            return static, static_owners
         cid = self.client_id
-        rows = list(self._static_boxes)
-        rows += [(*lo, *hi) for lo, hi in (p.getAABB(body, physicsClientId=cid) for body, _ in self._movers)]
-        rows += [(*lo, *hi) for lo, hi in (p.getAABB(v.body, physicsClientId=cid) for v in self._vehicles)]
+        bodies = [body for body, _ in self._movers] + ([v.body for v in self._vehicles] if vehicles else [])
+        rows = [(*lo, *hi) for lo, hi in (p.getAABB(body, physicsClientId=cid) for body in bodies)]
         owners = np.full(len(rows), -1, dtype=np.int64)
-        owners[len(rows) - len(self._vehicles):] = np.arange(len(self._vehicles))
-        return np.array(rows, dtype=float).reshape(-1, 6), owners
+        if vehicles:
+            owners[len(rows) - len(self._vehicles):] = np.arange(len(self._vehicles))
+        return np.vstack((static, np.array(rows, dtype=float).reshape(-1, 6))), np.concatenate((static_owners, owners))
 
     @property
     def has_ground(self) -> bool:
@@ -436,6 +440,11 @@ class Simulation:
             else:
                 lo, hi = p.getAABB(body, physicsClientId=cid)
                 self._static_boxes.append((*lo, *hi))
+        static_rows = np.array(self._static_boxes, dtype=float).reshape(-1, 6)
+        static_owners = np.full(len(static_rows), -1, dtype=np.int64)
+        static_rows.setflags(write=False)
+        static_owners.setflags(write=False)
+        self._static_box_rows = (static_rows, static_owners)
         rest_z = self.params.collision_box_m[2] / 2.0
         on_ground = []
         for v in self._vehicles:

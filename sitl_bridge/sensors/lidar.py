@@ -21,9 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from sitl_bridge.frames import quat_to_matrix_t
+from sitl_bridge.jit import kernel
 from sitl_bridge.physics.bullet import p
 from sitl_bridge.physics.simulation import Simulation
-from sitl_bridge.sensors.ray_reach import REACH_MARGIN_M, rays_that_may_hit
+from sitl_bridge.sensors.ray_reach import REACH_MARGIN_M, merge_hits, rays_to_cast
 from sitl_bridge.world.schema import LidarConfig
 
 __all__ = ["Lidar", "LidarConfig", "LidarScan", "ray_directions_flu", "ray_labels"]
@@ -81,6 +82,20 @@ def ray_directions_flu(config: LidarConfig) -> tuple[np.ndarray, np.ndarray, np.
     up = [(math.sin(b), 0.0, math.cos(b)) for b in _fan(config.up_rays, config.up_fov_deg)]
     down = [(math.sin(b), 0.0, -math.cos(b)) for b in _fan(config.down_rays, config.down_fov_deg)]
     return (np.array(horizontal).reshape(-1, 3), np.array(up).reshape(-1, 3), np.array(down).reshape(-1, 3))
+
+
+@kernel()
+def split_ranges(ranges: np.ndarray, a: int, b: int, flagged: np.ndarray,
+                 no_flag_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """One vehicle's ranges as copies of its groups (`[:a]`, `[a:b]`, `[b:]`) and the shortest
+    range of the `flagged` rays (`no_flag_m` when none is flagged)."""
+    shortest = np.inf
+    seen = False
+    for k in range(ranges.shape[0]):
+        if flagged[k]:
+            seen = True
+            shortest = min(shortest, ranges[k])
+    return ranges[:a].copy(), ranges[a:b].copy(), ranges[b:].copy(), shortest if seen else no_flag_m
 
 
 class Lidar:
@@ -166,25 +181,21 @@ class Lidar:
             results = p.rayTestBatch(starts, ends, physicsClientId=cid)  # reads numpy arrays directly
             return (np.fromiter(map(_HIT_FRACTION, results), dtype=float, count=count),
                     np.fromiter(map(_HIT_BODY, results), dtype=np.int64, count=count))
-        boxes, box_owners = self.sim.body_boxes()
-        cast = np.flatnonzero(rays_that_may_hit(starts, ends, self._owners, boxes, box_owners, self.sim.has_ground,
-                                                REACH_MARGIN_M))
-        fractions = np.ones(count)
-        bodies = np.full(count, -1, dtype=np.int64)
-        if len(cast):
-            results = p.rayTestBatch(starts[cast], ends[cast], physicsClientId=cid)
-            fractions[cast] = np.fromiter(map(_HIT_FRACTION, results), dtype=float, count=len(cast))
-            bodies[cast] = np.fromiter(map(_HIT_BODY, results), dtype=np.int64, count=len(cast))
-        return fractions, bodies
+        # a vehicle's own box never counts for its rays: with one vehicle no vehicle box does
+        boxes, box_owners = self.sim.body_boxes(vehicles=self.sim.num_vehicles > 1)
+        cast, cast_starts, cast_ends = rays_to_cast(starts, ends, self._owners, boxes, box_owners, self.sim.has_ground,
+                                                    REACH_MARGIN_M)
+        n = len(cast)
+        results = p.rayTestBatch(cast_starts, cast_ends, physicsClientId=cid) if n else ()
+        return merge_hits(count, cast, np.fromiter(map(_HIT_FRACTION, results), dtype=float, count=n),
+                          np.fromiter(map(_HIT_BODY, results), dtype=np.int64, count=n))
 
     def _make_scan(self, c: LidarConfig, ranges: np.ndarray, vehicle: int, bodies: np.ndarray) -> LidarScan:
         a, b = self._splits[vehicle]
         mask = self._flag_masks[vehicle]
-        flagged = ranges[mask]
-        min_m = float(flagged.min()) if flagged.size else c.range_m
+        horizontal, up, down, min_m = split_ranges(ranges, a, b, mask, c.range_m)
         crash = min_m < c.crash_m
         # which drone a crash between drones is charged to depends on whether only drones caused it
         by_vehicles = crash and bool(np.all(np.isin(bodies[mask & (ranges < c.crash_m)], self.sim.vehicle_bodies)))
-        return LidarScan(horizontal_m=ranges[:a].copy(), up_m=ranges[a:b].copy(), down_m=ranges[b:].copy(),
-                         near=min_m < c.near_m, crash=crash, min_m=min_m, time_us=self.sim.time_us,
-                         crash_by_vehicles=by_vehicles)
+        return LidarScan(horizontal_m=horizontal, up_m=up, down_m=down, near=min_m < c.near_m, crash=crash,
+                         min_m=float(min_m), time_us=self.sim.time_us, crash_by_vehicles=by_vehicles)

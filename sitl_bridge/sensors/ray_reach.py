@@ -68,3 +68,24 @@ def _segment_meets_box(s0: float, s1: float, s2: float, d0: float, d1: float, d2
         if t_in > t_out:
             return False
     return True
+
+
+@kernel()
+def rays_to_cast(starts: np.ndarray, ends: np.ndarray, owners: np.ndarray, boxes: np.ndarray, box_owners: np.ndarray,
+                 ground: bool, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`rays_that_may_hit` as (indices of the rays to cast, their starts, their ends)."""
+    cast = np.flatnonzero(rays_that_may_hit(starts, ends, owners, boxes, box_owners, ground, margin))
+    return cast, starts[cast], ends[cast]
+
+
+@kernel()
+def merge_hits(count: int, cast: np.ndarray, fractions: np.ndarray, bodies: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per ray of `count`: the hit fraction and body of the cast ones (`cast`, in order), the
+    no-hit answer (1, body -1) for the others."""
+    all_fractions = np.ones(count)
+    all_bodies = np.full(count, -1, dtype=np.int64)
+    for k in range(cast.shape[0]):
+        all_fractions[cast[k]] = fractions[k]
+        all_bodies[cast[k]] = bodies[k]
+    return all_fractions, all_bodies
+
