@@ -60,9 +60,10 @@ def normalised_action(action: object, config: ActionConfig) -> np.ndarray:
     if vector.shape != (config.size,):
         raise ValueError(f"action must have {config.size} components (x, y, z"
                          f"{', yaw rate' if config.size == 4 else ''}), got shape {np.shape(action)}")
-    if not np.all(np.isfinite(vector)):
-        raise ValueError(f"action must be finite (no NaN or inf), got {vector.tolist()}")
-    return np.clip(vector, -1.0, 1.0)
+    values = vector.tolist()  # three or four numbers: plain floats beat array calls
+    if not all(map(math.isfinite, values)):
+        raise ValueError(f"action must be finite (no NaN or inf), got {values}")
+    return np.array([-1.0 if v < -1.0 else 1.0 if v > 1.0 else v for v in values])
 
 
 def _turn(vector_enu: np.ndarray, rotation_rad: float) -> np.ndarray:

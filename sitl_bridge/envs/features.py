@@ -45,6 +45,7 @@ import numpy as np
 
 from sitl_bridge.envs.view import DroneView, ScenarioLimits
 from sitl_bridge.errors import ConfigError, Node
+from sitl_bridge.jit import kernel
 
 LIDAR_GROUPS = ("horizontal", "up", "down")
 
@@ -88,11 +89,25 @@ class ObservationAssembler:
     def __call__(self, view: DroneView) -> np.ndarray:
         value = np.concatenate([np.asarray(compute(view), dtype=np.float64).reshape(-1)
                                 for compute in self._computes])
-        finite = np.isfinite(value)
-        if not finite.all():
-            value[~finite] = 0.0  # Feature.__call__'s nan_to_num(nan=0, posinf=0, neginf=0)
-        np.clip(value, self.low, self.high, out=value)
-        return value.astype(np.float32)
+        return finite_clipped_float32(value, self.low, self.high)
+
+
+@kernel()
+def finite_clipped_float32(value: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """`Feature.__call__`'s last steps over a whole vector, then float32: NaN and +-inf become 0
+    (`nan_to_num(nan=0, posinf=0, neginf=0)`), then each value is clipped to [low, high]
+    (`np.clip`: below low -> low, above high -> high)."""
+    out = np.empty(value.shape[0], dtype=np.float32)
+    for k in range(value.shape[0]):
+        x = value[k]
+        if not np.isfinite(x):
+            x = 0.0
+        if x < low[k]:  # np.clip is minimum(maximum(x, low), high)
+            x = low[k]
+        if x > high[k]:
+            x = high[k]
+        out[k] = x
+    return out
 
 
 def _rounded(values: np.ndarray, decimals: int | None) -> np.ndarray:
