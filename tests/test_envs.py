@@ -11,6 +11,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import sitl_bridge.envs as envs
+from sitl_bridge.autopilot.stub.commander import Commander
 from sitl_bridge.envs import SINGLE_ENVS, make_env
 from sitl_bridge.envs.features import observation_layout
 
@@ -136,6 +137,44 @@ def test_the_fused_direct_loop_flies_exactly_like_the_class_path(estimator: str)
     assert len(runs[0]) == len(runs[1])
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_descents_at_10_hz_fly_exactly_like_the_class_path_and_mostly_compiled(monkeypatch) -> None:  # noqa: ANN001
+    """Each descent command makes the land detector suspect a ground contact until the vehicle
+    gathers speed (its first stage): those steps run compiled (`steady_output`), and the flight
+    is the class path's bit for bit."""
+    rng = np.random.default_rng(5)
+    actions = [np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), -abs(rng.uniform(0.3, 1))], dtype=np.float32)
+               if k % 2 else rng.uniform(-1, 1, 3).astype(np.float32) for k in range(40)]
+    calls = [0]
+    step = Commander.step
+
+    def counted(self, *args):  # noqa: ANN001, ANN002, ANN202
+        calls[0] += 1
+        return step(self, *args)
+
+    monkeypatch.setattr(Commander, "step", counted)
+    runs, commander_steps = [], []
+    for fused in (True, False):
+        env = make_env(WORLDS / "obstacle_continuous.yaml", seed=4)
+        backend = env.unwrapped.backend
+        backend.fused = fused
+        calls[0], steps = 0, backend.steps
+        try:
+            seen, _ = run_actions(env, actions, seed=4)
+            state = backend.sim.state(0)
+            seen.append(np.concatenate([state.position_enu_m, state.quaternion_enu_flu, state.rotor_speeds_rad_s]))
+            runs.append(seen)
+            commander_steps.append(calls[0] / (backend.steps - steps))
+        finally:
+            env.close()
+    assert len(runs[0]) == len(runs[1])
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+    # the class path runs the Python commander every step; the fused loop about once a decision
+    # (the new setpoint) and when a suspicion starts or ends, not through it (25 steps a decision)
+    assert commander_steps[1] == 1.0
+    assert commander_steps[0] < 0.08, commander_steps  # 0.14 when suspicions ran in Python
 
 
 def test_hovering_until_the_step_limit_truncates() -> None:
