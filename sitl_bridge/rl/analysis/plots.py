@@ -177,7 +177,7 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
         grid, curves = held_evaluations(evals)
         label = "greedy success" + (f" (mean, 95 % band where >= {MIN_BAND_RUNS} runs)" if several else "")
         if several and ragged:
-            label += "; a run that ended holds its last evaluation"
+            label += ";\na run that ended holds its last evaluation"  # two lines: fits the panel
         draw(ax, curves, grid, "k", label, rate=True, marker="o", ms=3)
     else:
         ax.text(0.5, 0.5, "no greedy evaluations logged\n(train: eval_every)", ha="center", va="center",
