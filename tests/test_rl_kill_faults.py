@@ -127,22 +127,27 @@ def _train_cli(out: Path, *argv: str) -> subprocess.Popen:
 
 
 def _run_dir_of(proc: subprocess.Popen) -> Path:
+    before = []
     line = proc.stderr.readline()
-    assert line.startswith("run directory: "), line
+    while line and not line.startswith("run directory: "):  # e.g. the numba compile notice
+        before.append(line)
+        line = proc.stderr.readline()
+    assert line.startswith("run directory: "), "".join(before)
     threading.Thread(target=proc.stderr.read, daemon=True).start()  # drain: never block the child
     return Path(line[len("run directory: "):].split(" (resuming")[0].strip())
 
 
-def test_sitl_bridge_train_killed_during_an_evaluation_flies_it_again_on_resume(tmp_path: Path) -> None:
-    args = ["worlds/empty.yaml", "--seed", "3", "--episodes", "3", "--eval-every", "1", "--eval-episodes", "4",
-            "--layers", "2", "--hidden-units", "16"]
-    uninterrupted = _train_cli(tmp_path / "ref", *args)  # alongside the killed one (two cores)
-    killed = _train_cli(tmp_path / "killed", *args)
+def kill_and_resume(tmp_path: Path, argv: list[str], ready, after_kill=None) -> tuple[Path, Path]:
+    """Train `argv` twice at once with `python -m sitl_bridge train`: one run uninterrupted, the
+    other killed with SIGKILL when `ready(heartbeat)` holds, checked by `after_kill(run_dir)`,
+    then resumed. Returns (the resumed run's directory, the uninterrupted one's)."""
+    uninterrupted = _train_cli(tmp_path / "ref", *argv)  # alongside the killed one (two cores)
+    killed = _train_cli(tmp_path / "killed", *argv)
     try:
         run_dir = _run_dir_of(killed)
-        kill_when(run_dir, killed, lambda beat: beat["episode"] == 1
-                  and beat["phase"] == "greedy evaluation 1/4")
-        assert not (run_dir / "evals.jsonl").exists()
+        kill_when(run_dir, killed, ready)
+        if after_kill is not None:
+            after_kill(run_dir)
         resumed = _train_cli(tmp_path / "unused", "--resume", str(run_dir))
         assert resumed.wait(timeout=300) == 0
         reference = _run_dir_of(uninterrupted)
@@ -152,5 +157,18 @@ def test_sitl_bridge_train_killed_during_an_evaluation_flies_it_again_on_resume(
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+    return run_dir, reference
+
+
+def test_sitl_bridge_train_killed_during_an_evaluation_flies_it_again_on_resume(tmp_path: Path) -> None:
+    args = ["worlds/empty.yaml", "--seed", "3", "--episodes", "3", "--eval-every", "1", "--eval-episodes", "4",
+            "--layers", "2", "--hidden-units", "16"]
+
+    def no_evaluation_done(run_dir: Path) -> None:
+        assert not (run_dir / "evals.jsonl").exists()
+
+    run_dir, reference = kill_and_resume(
+        tmp_path, args, lambda beat: beat["episode"] == 1 and beat["phase"] == "greedy evaluation 1/4",
+        no_evaluation_done)
     assert [e["after_episodes"] for e in _jsonl(run_dir / "evals.jsonl")] == [1, 2, 3]
     assert_same_run(run_dir, reference)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from test_rl_kill_faults import _jsonl, _run_dir_of, _train_cli, assert_same_run, kill_when
+from test_rl_kill_faults import _jsonl, assert_same_run, kill_and_resume
 
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.rl.learner.config import TrainConfig, load_train_config
@@ -85,22 +85,7 @@ def test_a_missing_stable_baselines3_names_the_extra(tmp_path: Path) -> None:
 
 # -- kill -9 and --resume ----------------------------------------------------------------------------
 def _kill_and_resume(tmp_path: Path, world: Path, kill_after: int, args: list[str]) -> tuple[Path, Path]:
-    argv = [str(world), "--seed", "5", *args]
-    uninterrupted = _train_cli(tmp_path / "ref", *argv)  # alongside the killed one (two cores)
-    killed = _train_cli(tmp_path / "killed", *argv)
-    try:
-        run_dir = _run_dir_of(killed)
-        kill_when(run_dir, killed, lambda beat: beat["episode"] >= kill_after)
-        resumed = _train_cli(tmp_path / "unused", "--resume", str(run_dir))
-        assert resumed.wait(timeout=300) == 0
-        reference = _run_dir_of(uninterrupted)
-        assert uninterrupted.wait(timeout=300) == 0
-    finally:
-        for proc in (uninterrupted, killed):
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-    return run_dir, reference
+    return kill_and_resume(tmp_path, [str(world), "--seed", "5", *args], lambda beat: beat["episode"] >= kill_after)
 
 
 def test_ppo_killed_9_mid_run_resumes_exactly(tmp_path: Path) -> None:
