@@ -248,6 +248,13 @@ class Occupancy:
         """ENU positions (m) of nodes given as (..., 3) integer indices."""
         return self.origin_m + index * self.grid.cell_m
 
+    def free_at(self, position) -> bool:
+        """Whether the node nearest to `position` (ENU) is free; False outside the grid."""
+        index = np.rint((np.asarray(position, float) - self.origin_m) / self.grid.cell_m).astype(int)
+        if np.any(index < 0) or np.any(index >= np.array(self.shape)):
+            return False
+        return bool(self.free[tuple(index)])
+
 
 def _grid_shape(workspace: Workspace, cell_m: float) -> tuple[int, int, int]:
     size = np.asarray(workspace.max_m, float) - np.asarray(workspace.min_m, float)

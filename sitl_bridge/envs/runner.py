@@ -14,20 +14,21 @@ from typing import Any
 
 import numpy as np
 
-from sitl_bridge.client.actions import Action
+from sitl_bridge.client.actions import NUM_ACTIONS, Action
 from sitl_bridge.envs.actions import action_velocity, normalised_action, velocity_command
 from sitl_bridge.envs.backends import make_backend
 from sitl_bridge.envs.backends.base import Backend, Snapshot
 from sitl_bridge.envs.features import ObservationAssembler
 from sitl_bridge.envs.options import EnvOptions
-from sitl_bridge.envs.path_distance import PathField, Unreachable, path_field
+from sitl_bridge.envs.path_distance import PathField, PathGrid, Unreachable, path_field
+from sitl_bridge.envs.path_guide import guided_action
 from sitl_bridge.envs.priority import priorities
 from sitl_bridge.envs.scenario import Scenario
 from sitl_bridge.envs.task import ActionConfig, EndConfig
 from sitl_bridge.envs.view import DroneView
 from sitl_bridge.envs.watched_flight import fly_watched
 from sitl_bridge.errors import ConfigError
-from sitl_bridge.frames import quat_to_euler_t, wrap_pi, yaw_enu_to_ned
+from sitl_bridge.frames import ned_to_enu, quat_to_euler_t, wrap_pi, yaw_enu_to_ned
 from sitl_bridge.sensors.lidar import LidarScan
 from sitl_bridge.world import GoalPlacement
 
@@ -227,6 +228,26 @@ class EpisodeRunner:
         if not self._last:
             raise RuntimeError("call reset() first")
         return self._last
+
+    def path_guided_action(self, i: int) -> int:
+        """The action that a goal-seeking guide takes for drone `i` now (`envs/path_guide.py`):
+        the one whose straight move ends nearest its goal along the obstacle-free path (the
+        reward's path field, or one on the default grid when no reward term reads one)."""
+        if self._snapshot is None:
+            raise RuntimeError("call reset() before path_guided_action()")
+        field_ = self._paths[i]
+        if field_ is None:
+            try:
+                field_ = path_field(self.scenario.world.workspace, self._snapshot.obstacles,
+                                    self._snapshot.goals[i], PathGrid())
+            except Unreachable as exc:
+                raise ConfigError(f"{self.scenario.world.source}: the goal-seeking guide: {exc}") from None
+        config = self.scenario.task.action
+        here = np.asarray(self._snapshot.states[i].position_enu_m, dtype=float)
+        moves = [ned_to_enu(action_velocity(code, config=config, drone=i, position_enu_m=here,
+                                            start_enu_m=self._starts[i], goal_enu_m=self._goals[i]))
+                 * config.duration_s for code in range(NUM_ACTIONS)]
+        return guided_action(field_, here, moves)
 
     # -- pieces -------------------------------------------------------------------------
     def _left_airspace(self, i: int) -> bool:

@@ -88,6 +88,13 @@ class DronesEnv:
     def _action(self, action: Any) -> Any:
         return np.asarray(action, dtype=np.float32) if self.continuous else int(action)
 
+    def guided_action(self, i: int) -> int:
+        """Drone `i`'s goal-seeking guide action now (`EpisodeRunner.path_guided_action`)."""
+        runner = getattr(getattr(self.env, "unwrapped", self.env), "runner", None)
+        if runner is None:
+            raise ConfigError("guided_explore_episodes: this env has no scenario runner to guide exploration")
+        return int(runner.path_guided_action(i))
+
     def render(self) -> Any:
         """The env's `render()` (an RGB frame with `render_mode="rgb_array"`)."""
         return self.env.render()

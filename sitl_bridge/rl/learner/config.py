@@ -77,6 +77,14 @@ class TrainConfig:
     repeats its random action for 1..this many steps (zeta-distributed); 1 = plain epsilon-greedy."""
     explore_repeat_exponent: float = 2.0
     """ez-greedy: P(run of n steps) proportional to n^-this (larger: shorter runs)."""
+    guided_explore_episodes: int = 0
+    """Goal-seeking exploration in the first this many episodes (0 = off): each step there takes,
+    with probability epsilon x `guided_explore_share`, the action of a guide that follows the
+    shortest obstacle-free path to the goal (`envs/path_guide.py`) instead of the epsilon-greedy
+    one, so that the replay holds goals before the values settle on crashing early
+    (docs/findings.md, why seeds collapse)."""
+    guided_explore_share: float = 0.5
+    """Share of the exploring (epsilon) steps of the guided episodes that follow the guide."""
     transfer_epsilon_max: float = 0.6
     """epsilon_max used instead when the run starts from another run's network (thesis: 0.45-0.8)."""
     transfer_replay: bool = False
@@ -198,6 +206,10 @@ class TrainConfig:
                                                                           or self.num_envs == 1),
              "an integer in [1, 1000] (above 1 only with num_envs 1)"),
             ("explore_repeat_exponent", 0.0 < self.explore_repeat_exponent <= 10.0, "a number in (0, 10]"),
+            ("guided_explore_episodes", 0 <= self.guided_explore_episodes <= MAX_EPISODES
+             and (self.guided_explore_episodes == 0 or self.num_envs == 1),
+             f"an integer in [0, {MAX_EPISODES}] (above 0 only with num_envs 1)"),
+            ("guided_explore_share", 0.0 <= self.guided_explore_share <= 1.0, "a number in [0, 1]"),
             ("transfer_epsilon_max", 0.0 <= self.transfer_epsilon_max <= 1.0, "a number in [0, 1]"),
             ("learning_rate", 0.0 < self.learning_rate <= 10.0, "a positive number (at most 10)"),
             ("learning_rate_end", 0.0 <= self.learning_rate_end <= 10.0, "a non-negative number (at most 10)"),

@@ -538,6 +538,8 @@ class Trainer:
         while self.env.live:
             epsilon = learner.epsilon()
             chosen = {i: learner.act(i, obs[i], epsilon) for i in self.env.live}
+            if episode < self.config.guided_explore_episodes:
+                self._guide(chosen, epsilon)
             result = self.env.step(chosen)
             for i, action in chosen.items():
                 tally.add(i, action, result.rewards[i], result.terminated[i], result.truncated[i],
@@ -557,6 +559,13 @@ class Trainer:
                                 cpu_time_s=time.process_time() - cpu_start)
         self.persist(records, new_rows)
         return records
+
+    def _guide(self, chosen: dict[int, int], epsilon: float) -> None:
+        """`guided_explore_episodes`: a share of the exploring steps (probability epsilon times
+        `guided_explore_share`) takes the goal-seeking guide's action instead."""
+        for i in chosen:
+            if self.rng.random() < epsilon * self.config.guided_explore_share:
+                chosen[i] = self.env.guided_action(i)
 
     def persist(self, records: list[EpisodeRecord], new_rows: list[np.ndarray]) -> None:
         """Count finished episodes' successes, then persist their replay rows and then their
