@@ -79,7 +79,7 @@ def write_figures(results: dict[str, Any], out: str | Path, say: Callable[[str],
             groups[f"control (from scratch, epsilon from {control['epsilon_max']:g})"] = dirs(control)
         if any(groups.values()):
             draw(f"transfer_{name}", comparison, "figure", lambda p, g=groups, c=comparison: plot_greedy_groups(
-                g, p, f"{c['to']}: greedy success with vs without the {c['from']} network (same seeds)"))
+                g, p, f"{c['to']}: greedy success with vs without\nthe {c['from']} network (same seeds)"))
 
 
 # -- formatting ----------------------------------------------------------------------------------
