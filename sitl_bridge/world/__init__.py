@@ -5,6 +5,8 @@ from sitl_bridge.world.loader import load_world, parse_scenario
 from sitl_bridge.world.lookup import default_world_path, resolve_world, with_vehicle_count
 from sitl_bridge.world.schema import (
     AlongPath,
+    Encounter,
+    EncounterType,
     GeoHome,
     GoalRegion,
     LidarConfig,
@@ -22,7 +24,7 @@ from sitl_bridge.world.schema import (
 )
 
 __all__ = [
-    "AlongPath", "GeoHome", "GoalPlacement", "GoalRegion", "Layout", "LidarConfig", "Obstacle",
+    "AlongPath", "Encounter", "EncounterType", "GeoHome", "GoalPlacement", "GoalRegion", "Layout", "LidarConfig", "Obstacle",
     "ObstaclePlacement", "ObstacleRandomization", "Opening", "PatrolMover", "PhysicsSettings",
     "RandomLegsMover", "Shape", "Spawn", "VehicleSpec", "Workspace", "World", "default_world_path",
     "load_world", "parse_scenario", "realize", "resolve_world", "with_vehicle_count",

@@ -1,7 +1,8 @@
 """One episode's concrete layout of a world: randomised spawns, goals and obstacles drawn.
 
 `realize(world, rng)` is pure (no pybullet) so envs, tests and the simulator agree on what was
-drawn. Draw order is fixed (goals, spawns, obstacles) so a seed fixes the whole layout.
+drawn. Draw order is fixed (goals, spawns, obstacles; or under `world.encounter` the encounter,
+then obstacles) so a seed fixes the whole layout.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sitl_bridge.world.encounter import draw_encounter
 from sitl_bridge.world.schema import Obstacle, Shape, Vec3, World
 
 
@@ -51,6 +53,10 @@ class Layout:
     goals: tuple[GoalPlacement, ...]
     vehicle_goals: tuple[int | None, ...]    # per vehicle, index into goals
     obstacles: tuple[ObstaclePlacement, ...]
+    start_delays_s: tuple[float, ...] = ()
+    """Per vehicle: simulated seconds it is held hovering before its actions fly (empty: none)."""
+    encounter: str | None = None
+    """The encounter type drawn this episode (`world.encounter`), else None."""
 
     def goal_of(self, vehicle: int) -> GoalPlacement | None:
         """The goal region of a vehicle this episode (None when the vehicle has no goal)."""
@@ -64,6 +70,8 @@ def _uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
 
 def realize(world: World, rng: np.random.Generator) -> Layout:
     """Draw one episode's layout of `world` from `rng`."""
+    if world.encounter is not None:
+        return _realize_encounter(world, rng)
     goals = []
     for g in world.goals:
         center = g.center_m
@@ -80,17 +88,36 @@ def realize(world: World, rng: np.random.Generator) -> Layout:
         yaws.append(s.yaw_rad + _uniform(rng, -s.randomize_yaw_rad, s.randomize_yaw_rad))
 
     vehicle_goals = tuple(v.goal for v in world.vehicles)
-    obstacles = []
-    for o in world.obstacles:
-        placement = _place_obstacle(o, rng, spawns, goals, vehicle_goals)
-        if o.randomize is not None:
-            # a randomised obstacle must neither bury a spawn nor fill a goal: redraw (seeded)
-            for _ in range(MAX_REDRAWS):
-                if _clear_of(placement, spawns, goals):
-                    break
-                placement = _place_obstacle(o, rng, spawns, goals, vehicle_goals)
-        obstacles.append(placement)
+    obstacles = [_placed(o, rng, spawns, goals, vehicle_goals) for o in world.obstacles]
     return Layout(tuple(spawns), tuple(yaws), tuple(goals), vehicle_goals, tuple(obstacles))
+
+
+def _realize_encounter(world: World, rng: np.random.Generator) -> Layout:
+    """The encounter's drawn spawns and goals, then the obstacles (plus a bottleneck's wall)."""
+    assert world.encounter is not None
+    draw = draw_encounter(world.encounter, world.workspace, world.obstacles, rng, source=world.source)
+    goals = [GoalPlacement(g.name, center, g.size_m) for g, center in zip(world.goals, draw.goal_centers_m, strict=True)]
+    spawns = list(draw.spawns_m)
+    vehicle_goals = tuple(v.goal for v in world.vehicles)
+    obstacles = [_placed(o, rng, spawns, goals, vehicle_goals) for o in world.obstacles]
+    if draw.wall is not None:
+        obstacles.append(ObstaclePlacement(draw.wall.name, draw.wall.shape, draw.wall.position_m,
+                                           draw.wall.yaw_rad, draw.wall))
+    return Layout(tuple(spawns), draw.yaws_rad, tuple(goals), vehicle_goals, tuple(obstacles),
+                  draw.start_delays_s, draw.kind)
+
+
+def _placed(o: Obstacle, rng: np.random.Generator, spawns: list[Vec3], goals: list[GoalPlacement],
+            vehicle_goals: tuple[int | None, ...]) -> ObstaclePlacement:
+    """An obstacle placed for this episode; a randomised one redrawn off spawns and goals."""
+    placement = _place_obstacle(o, rng, spawns, goals, vehicle_goals)
+    if o.randomize is not None:
+        # a randomised obstacle must neither bury a spawn nor fill a goal: redraw (seeded)
+        for _ in range(MAX_REDRAWS):
+            if _clear_of(placement, spawns, goals):
+                break
+            placement = _place_obstacle(o, rng, spawns, goals, vehicle_goals)
+    return placement
 
 
 #: Redraws of a randomised obstacle that lands on a spawn or a goal before giving up (keeping it).

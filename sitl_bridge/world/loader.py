@@ -10,8 +10,11 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
+
 from sitl_bridge.errors import NAME_MAX_CHARS, ConfigError, Node, load_yaml
 from sitl_bridge.world.clock import divides
+from sitl_bridge.world.encounter import draw_encounter, parse_encounter
 from sitl_bridge.world.lookup import world_file
 from sitl_bridge.world.schema import (
     SHAPE_KINDS,
@@ -85,13 +88,16 @@ def _check_step_divides_task(physics: Node, step_us: int, task: Node) -> None:
 def _parse_world(node: Node, base_dir: Path, task: Node | None, train: Node | None) -> World:
     node.mapping()
     node.reject_unknown({"name", "description", "home", "physics", "workspace", "ground",
-                         "vehicles", "goals", "obstacles"})
+                         "vehicles", "goals", "obstacles", "encounter"})
     name = node.get("name").string(max_chars=NAME_MAX_CHARS)
     description = node.get("description", "").string()
     home = _parse_home(node.get("home", {}))
     physics = _parse_physics(node.get("physics", {}))
     workspace = _parse_box(node.get("workspace"), "workspace")
     ground = node.get("ground", True).boolean()
+    if node.has("encounter"):
+        return _parse_encounter_world(node, base_dir, task, train, name=name, description=description,
+                                      home=home, physics=physics, workspace=workspace, ground=ground)
 
     goal_nodes = node.get("goals", []).list()
     goals = tuple(_parse_goal(g) for g in goal_nodes)
@@ -120,6 +126,33 @@ def _parse_world(node: Node, base_dir: Path, task: Node | None, train: Node | No
     world = World(name=name, source=node.source, description=description, home=home,
                   physics=physics, workspace=workspace, ground=ground, vehicles=vehicles,
                   goals=goals, obstacles=obstacles, task=task, train=train)
+    check_world_sense(world, node)
+    return world
+
+
+def _parse_encounter_world(node: Node, base_dir: Path, task: Node | None, train: Node | None,
+                           **fields) -> World:
+    """A world whose vehicles and goals an `encounter:` section draws every episode: drone0..N-1
+    with goals goal0..N-1, their written spawns and goals those of the episode drawn from seed 0."""
+    for key in ("vehicles", "goals"):
+        if node.has(key):
+            raise node.get(key).error(f"no {key}: beside encounter: (the encounter places every drone and goal)")
+    workspace: Workspace = fields["workspace"]
+    encounter = parse_encounter(node.get("encounter"), workspace, _parse_lidar)
+    names = [f"drone{i}" for i in range(encounter.drones)]
+    obstacle_nodes = node.get("obstacles", []).list()
+    obstacles = tuple(_parse_obstacle(o, base_dir, {n: i for i, n in enumerate(names)}) for o in obstacle_nodes)
+    _unique([o.name for o in obstacles], obstacle_nodes)
+    if any(o.randomize is not None and o.randomize.along_path is not None for o in obstacles):
+        k = next(i for i, o in enumerate(obstacles) if o.randomize and o.randomize.along_path)
+        raise obstacle_nodes[k].get("randomize").get("along_path").error(
+            "no along_path beside encounter: (the paths are drawn per episode)")
+    first = draw_encounter(encounter, workspace, obstacles, np.random.default_rng(0), source=node.source)
+    goals = tuple(GoalRegion(f"goal{i}", center, encounter.goal_size_m) for i, center in enumerate(first.goal_centers_m))
+    vehicles = tuple(VehicleSpec(names[i], "iris", Spawn(first.spawns_m[i], first.yaws_rad[i]), i, encounter.lidar)
+                     for i in range(encounter.drones))
+    world = World(source=node.source, vehicles=vehicles, goals=goals, obstacles=obstacles,
+                  encounter=encounter, task=task, train=train, **fields)
     check_world_sense(world, node)
     return world
 

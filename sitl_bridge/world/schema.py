@@ -50,6 +50,10 @@ The `world:` section, every key (optional ones show their default)::
             position: [dx, dy, dz]       # uniform +- offset
             yaw: 30                      # uniform +- degrees
             variants: [{shape: box, size: [1, 1, 3]}, {shape: cylinder, radius: 0.5, height: 3}]
+      encounter:                         # instead of vehicles: and goals: a multi-drone encounter
+        drones: 2                        # family drawn anew every episode; its keys and types:
+        type: crossing                   # sitl_bridge/world/encounter.py (docs/scenarios.md)
+        angle_deg: [30, 150]
 """
 
 from __future__ import annotations
@@ -286,6 +290,89 @@ class PhysicsSettings:
     crash_tilt_deg: float = 60.0
 
 
+ENCOUNTER_TYPES = ("head_on", "crossing", "converging", "overtaking", "bottleneck")
+"""`world.encounter` types (their geometry, keys and draws: `sitl_bridge/world/encounter.py`)."""
+KEYS_OF = {
+    "head_on": {"length_m", "lateral_offset_m"},
+    "crossing": {"length_m", "angle_deg"},
+    "converging": {"radius_m", "angle_jitter_deg"},
+    "overtaking": {"length_m", "gap_m"},
+    "bottleneck": {"distance_m", "exit_m", "lateral_offset_m", "gap_width_m", "wall_height_m"},
+}
+"""Each encounter type's own keys (besides type, weight, heading_deg, start_delay_s)."""
+
+
+@dataclass(frozen=True)
+class EncounterType:
+    """One encounter type's ranges (metres, seconds; angles in degrees as written)."""
+
+    kind: str
+    weight: float = 1.0
+    heading_deg: tuple[float, float] = (0.0, 360.0)
+    start_delay_s: tuple[float, float] = (0.0, 0.0)
+    length_m: tuple[float, float] = (8.0, 10.0)
+    lateral_offset_m: tuple[float, float] = (0.0, 0.0)
+    angle_deg: tuple[float, float] = (90.0, 90.0)
+    radius_m: tuple[float, float] = (4.0, 5.0)
+    angle_jitter_deg: float = 0.0
+    gap_m: tuple[float, float] = (2.0, 3.0)
+    distance_m: tuple[float, float] = (2.0, 6.0)
+    exit_m: float = 3.0
+    gap_width_m: tuple[float, float] = (1.2, 1.6)
+    wall_height_m: float | None = None
+
+    def describe(self) -> str:
+        """One line: the type and its ranges as written (degrees, metres, seconds)."""
+        keys = ["heading_deg", *sorted(KEYS_OF[self.kind] - {"wall_height_m"}), "start_delay_s"]
+
+        def shown(value: object) -> str:
+            if isinstance(value, tuple):
+                low, high = value
+                return f"{low:g}" if low == high else f"{low:g}..{high:g}"
+            return f"{value:g}"  # type: ignore[str-format]
+
+        return f"`{self.kind}`: " + ", ".join(f"{key} {shown(getattr(self, key))}" for key in keys)
+
+    def reach_m(self, drones: int) -> float:
+        """The farthest any spawn or goal of this type can lie from the centre (horizontal)."""
+        if self.kind == "head_on":
+            return math.hypot(self.length_m[1] / 2.0, max(abs(v) for v in self.lateral_offset_m))
+        if self.kind == "crossing":
+            return self.length_m[1] / 2.0
+        if self.kind == "converging":
+            return self.radius_m[1]
+        if self.kind == "overtaking":
+            return (self.length_m[1] + self.gap_m[1]) / 2.0
+        lateral = max(abs(v) for v in self.lateral_offset_m)
+        return math.hypot(max(self.distance_m[1], self.exit_m), lateral)
+
+
+@dataclass(frozen=True)
+class Encounter:
+    """A world's encounter family: the drones, where they meet, and the types drawn."""
+
+    drones: int
+    center_m: tuple[float, float]
+    altitude_m: float
+    goal_size_m: Vec3
+    types: tuple[EncounterType, ...]
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+
+    def describe(self) -> list[str]:
+        """Markdown lines: each type with its probability and ranges, and what a delay does."""
+        total = sum(t.weight for t in self.types)
+        lines = [f"{self.drones} drones; every episode draws one type (probability), then its geometry "
+                 f"around ({self.center_m[0]:g}, {self.center_m[1]:g}), goals {self.altitude_m:g} m up "
+                 "(`sitl_bridge/world/encounter.py`):", ""]
+        lines += [f"- {t.weight / total:.0%} {t.describe()}" for t in self.types]
+        if any(t.start_delay_s[1] > 0.0 for t in self.types):
+            lines += ["", "A drone with a start delay is held hovering at its start, its actions ignored, "
+                      "until the delay has passed (`info[\"entered\"]` is False while its next action "
+                      "would be ignored); it is in `env.agents` and scored throughout."]
+        return lines
+
+
+
 @dataclass(frozen=True)
 class World:
     """A loaded, validated world (`world:` section) plus the raw `task:` / `train:` sections."""
@@ -300,6 +387,8 @@ class World:
     vehicles: tuple[VehicleSpec, ...] = ()
     goals: tuple[GoalRegion, ...] = ()
     obstacles: tuple[Obstacle, ...] = ()
+    encounter: Encounter | None = None
+    """Drawn anew every episode: the vehicles' spawns and goals (their own are episode 0's)."""
     task: Node | None = None
     train: Node | None = None
 
@@ -318,7 +407,9 @@ class World:
         """One line: name, vehicles, obstacles (static/moving), goals, randomised parts."""
         moving = sum(1 for o in self.obstacles if o.dynamic)
         randomised = []
-        if any(g.randomize_min_m is not None for g in self.goals):
+        if self.encounter is not None:
+            randomised.append("encounter (" + ", ".join(t.kind for t in self.encounter.types) + ")")
+        elif any(g.randomize_min_m is not None for g in self.goals):
             randomised.append("goal")
         if any(v.spawn.randomize_position_m != (0.0, 0.0, 0.0) or v.spawn.randomize_yaw_rad for v in self.vehicles):
             randomised.append("spawn")

@@ -35,7 +35,7 @@ def check_world_sense(world: World, node: Node) -> None:
         if obstacle.dynamic or obstacle.randomize is not None:
             continue  # placed per episode or moving: nothing fixed to check
         for v, vehicle in enumerate(world.vehicles):
-            if _overlaps(obstacle, vehicle.spawn.position_m, SPAWN_CLEARANCE_M):
+            if overlaps(obstacle, vehicle.spawn.position_m, SPAWN_CLEARANCE_M):
                 where = node.get("obstacles").list()[k]
                 raise ConfigError(
                     f"{where.source}: {where.path}: obstacle '{obstacle.name}' covers the spawn point "
@@ -43,7 +43,7 @@ def check_world_sense(world: World, node: Node) -> None:
                     f"move one of them (a spawn needs {SPAWN_CLEARANCE_M} m of free space)")
 
 
-def _overlaps(obstacle: Obstacle, point: Vec3, margin_m: float) -> bool:
+def overlaps(obstacle: Obstacle, point: Vec3, margin_m: float) -> bool:
     """True when `point` lies within `margin_m` of the obstacle's shape at its nominal pose."""
     dx, dy, dz = (p - c for p, c in zip(point, obstacle.position_m, strict=True))
     # Into the obstacle's frame (yaw about z, counter-clockwise).
