@@ -200,3 +200,91 @@ def test_worlds_check_passes_on_the_shipped_families(capsys) -> None:
     assert run_check(*(str(WORLDS / f"{f}.yaml") for f in FAMILIES)) == 0
     out = capsys.readouterr().out
     assert out.count(": ok: ") == len(FAMILIES) and "randomised: encounter (" in out
+
+
+# -- flown by the envs (direct backend: real pybullet, stub autopilot) ---------------------------
+def _single_type_file(tmp_path: Path, family: str, index: int) -> Path:
+    """`family`'s scenario with only its `index`-th encounter type (task and all else unchanged)."""
+    root = yaml.safe_load((WORLDS / f"{family}.yaml").read_text())
+    encounter = root["world"]["encounter"]
+    encounter["mix"] = [encounter["mix"][index]]
+    path = tmp_path / f"{family}_{index}.yaml"
+    path.write_text(yaml.safe_dump(root))
+    return path
+
+
+@pytest.mark.parametrize("family", ["encounters", "encounters_heldout_converging"])
+def test_pettingzoo_parallel_api_test_passes(family: str) -> None:
+    from pettingzoo.test import parallel_api_test
+
+    from sitl_bridge.envs import make_parallel_env
+
+    env = make_parallel_env(WORLDS / f"{family}.yaml", seed=0)
+    try:
+        parallel_api_test(env, num_cycles=8)
+        assert env.possible_agents == [f"drone{i}" for i in range(env.scenario.world.encounter.drones)]
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize(("family", "index"), [("encounters", i) for i in range(5)]
+                         + [("encounters_converging", 0)])
+def test_random_action_episodes_of_each_type_fly_on_the_direct_backend(tmp_path: Path, family: str,
+                                                                       index: int) -> None:
+    from sitl_bridge.envs import make_parallel_env
+
+    env = make_parallel_env(_single_type_file(tmp_path, family, index), seed=index)
+    kind = env.scenario.world.encounter.types[0]
+    rng = np.random.default_rng(index)
+    try:
+        for episode in range(2):
+            observations, infos = env.reset(seed=100 + episode)
+            layout = env.backend.sim.layout
+            assert layout.encounter == kind.kind
+            starts = {a: infos[a]["position_enu_m"].copy() for a in env.agents}
+            for a, spawn in zip(env.possible_agents, layout.spawn_positions_m, strict=True):
+                # every drone starts hovering above its drawn spawn, its goal the drawn one
+                assert np.allclose(starts[a][:2], spawn[:2], atol=0.1)
+                assert np.allclose(infos[a]["goal_enu_m"], layout.goal_of(env.possible_agents.index(a)).center_m)
+            walls = [o for o in layout.obstacles if o.name == WALL_NAME]
+            assert len(walls) == (kind.kind == "bottleneck")
+            steps, outcomes = 0, {}
+            while env.agents:
+                # random moves, never a hover (code 7): a held drone that stays put was held
+                actions = {a: int(rng.integers(7)) for a in env.agents}
+                held = {a for a in env.agents if not infos[a]["entered"]}
+                before = {a: infos[a]["position_enu_m"].copy() for a in held}
+                observations, rewards, terminations, truncations, infos = env.step(actions)
+                steps += 1
+                for a in held:
+                    assert np.linalg.norm(infos[a]["position_enu_m"] - before[a]) < 0.15, (a, steps)
+                    assert infos[a]["action"] is None
+                for a in infos:
+                    if terminations[a] or truncations[a]:
+                        outcomes[a] = infos[a]["outcome"]
+            assert set(outcomes) == set(env.possible_agents)
+            assert set(outcomes.values()) <= {"goal", "crash", "out", "timeout"}
+            assert steps <= env.scenario.task.max_steps
+    finally:
+        env.close()
+
+
+def test_a_late_entry_is_held_for_its_delay_then_flies(tmp_path: Path) -> None:
+    from sitl_bridge.envs import make_parallel_env
+
+    env = make_parallel_env(_single_type_file(tmp_path, "encounters", 2), seed=0)  # overtaking: leader waits
+    try:
+        for seed in range(3):
+            _, infos = env.reset(seed=seed)
+            delay = env.backend.sim.layout.start_delays_s[1]
+            assert 3.0 <= delay <= 5.0 and infos["drone1"]["entered"] is False and infos["drone0"]["entered"]
+            held_steps = math.ceil(delay / env.scenario.task.action.duration_s - 1e-9)
+            start = infos["drone1"]["position_enu_m"].copy()
+            for step in range(held_steps + 1):
+                assert infos["drone1"]["entered"] is (step >= held_steps)
+                # the follower hovers (flying on, it would hit the waiting leader); the leader is told to go
+                _, _, _, _, infos = env.step({"drone0": 7, "drone1": 6})
+                moved = float(np.linalg.norm(infos["drone1"]["position_enu_m"] - start))
+                assert (moved < 0.15) is (step < held_steps), (seed, step, moved)
+    finally:
+        env.close()

@@ -72,6 +72,8 @@ def describe(scenario: Scenario) -> str:
     task = scenario.task
     world = scenario.world
     lines = [f"# {world.name}", "", world.description.strip() or "(no description)", ""]
+    if world.encounter is not None:
+        lines += ["## Encounters", *world.encounter.describe(), ""]
     lines += _actions(task.action)
     lines += [
         "",

@@ -102,6 +102,8 @@ class EpisodeRunner:
         self._previous_actions: list[np.ndarray | None] = [None] * self.num_drones
         self._yaw_targets_enu: list[float] = [0.0] * self.num_drones
         """Per drone, the heading setpoint (ENU yaw) that `yaw: rate` actions move."""
+        self._delays_s: tuple[float, ...] = ()
+        """Per drone, how long it is held at its start this episode (`Snapshot.start_delays_s`)."""
         self._observe = ObservationAssembler(scenario.task.observation)
         self._others = [[j for j in range(self.num_drones) if j != i] for i in range(self.num_drones)]
 
@@ -139,6 +141,7 @@ class EpisodeRunner:
         self._paths = self._path_fields(snapshot)
         self._previous_actions = [None] * self.num_drones
         self._yaw_targets_enu = [_yaw_enu(s) for s in snapshot.states]
+        self._delays_s = snapshot.start_delays_s
         results = []
         for i in range(self.num_drones):
             view = self._view(i, snapshot, snapshot, crashed=False)
@@ -158,6 +161,8 @@ class EpisodeRunner:
         flying = [not done for done in self.done]
         yaws: list[float] | None = None
         normalised: dict[int, np.ndarray] = {}
+        if self._delays_s:  # a held drone (late entry) hovers whatever it was told
+            actions = {i: a for i, a in actions.items() if not (0 <= i < self.num_drones and self._held(i))}
         if config.continuous:
             checked = {i: normalised_action(a, config) for i, a in actions.items()}  # every one, flying or not
             normalised = {i: a for i, a in checked.items() if 0 <= i < self.num_drones and flying[i]}
@@ -250,6 +255,15 @@ class EpisodeRunner:
         return guided_action(field_, here, moves)
 
     # -- pieces -------------------------------------------------------------------------
+    def _held(self, i: int) -> bool:
+        """Whether drone `i` has not entered yet: its start delay outlasts the decisions flown so
+        far (it hovers at its start through the decision now asked for)."""
+        if not self._delays_s:
+            return False
+        config = self.scenario.task.action
+        elapsed_s = self.step_count * (config.duration_s + config.zero_velocity_s)
+        return elapsed_s < self._delays_s[i] - 1e-9
+
     def _left_airspace(self, i: int) -> bool:
         """Whether drone `i` reached its goal and lands there (`end.after_goal: land`)."""
         return self.outcomes[i] == "goal" and self.scenario.task.end.after_goal == "land"
@@ -442,4 +456,6 @@ class EpisodeRunner:
             "distance_to_goal_m": view.distance_to_goal_m,
             "crashed": view.crashed,
             "near_obstacle": view.near_obstacle,
+            # a late entry (`world.encounter` start delay): False while the drone is held at its start
+            "entered": not self._held(view.index),
         }

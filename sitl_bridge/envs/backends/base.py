@@ -90,6 +90,9 @@ class Snapshot:
     hit_obstacle: tuple[bool, ...] | None = None
     """Per vehicle: a collision with something other than a vehicle since the last call (None:
     the backend does not tell, so every collision counts as one)."""
+    start_delays_s: tuple[float, ...] = ()
+    """Per vehicle: how long after the episode start it is held hovering, its actions ignored (a
+    late entry of `world.encounter`; empty: every vehicle flies from the start)."""
     obstacles: tuple[ObstaclePlacement, ...] = ()
     """The obstacles as placed this episode (randomised per the world; a mover's placement is
     where its route is anchored, not where it is now)."""

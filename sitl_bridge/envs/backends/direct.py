@@ -470,4 +470,5 @@ class DirectBackend:
             hit_obstacle=tuple(self._collisions.obstacle),
             goals=goals,  # type: ignore[arg-type]  # load_scenario checks every vehicle has a goal
             obstacles=layout.obstacles,
+            start_delays_s=layout.start_delays_s,
         )

@@ -357,4 +357,5 @@ class SessionBackend:
             hit_obstacle=tuple(self._collisions.obstacle),
             goals=tuple(layout.goal_of(i) for i in range(self.num_drones)),  # type: ignore[arg-type]
             obstacles=layout.obstacles,
+            start_delays_s=layout.start_delays_s,
         )
