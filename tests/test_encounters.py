@@ -288,3 +288,12 @@ def test_a_late_entry_is_held_for_its_delay_then_flies(tmp_path: Path) -> None:
                 assert (moved < 0.15) is (step < held_steps), (seed, step, moved)
     finally:
         env.close()
+
+
+def test_an_encounter_world_keeps_its_drone_count() -> None:
+    from sitl_bridge.world import with_vehicle_count
+
+    world = load_world(WORLDS / "encounters_converging.yaml")
+    assert with_vehicle_count(world, 3) == world
+    with pytest.raises(ConfigError, match=r"world.encounter.drones: the encounter places 3 drones every episode, not 4"):
+        with_vehicle_count(world, 4)

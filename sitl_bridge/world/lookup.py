@@ -54,6 +54,9 @@ def with_vehicle_count(world: World, count: int) -> World:
     shifted east by `EXTRA_VEHICLE_SPACING_M` each; surplus ones are dropped."""
     if count < 1:
         raise ConfigError(f"{world.source}: vehicles: expected at least 1, got {count}")
+    if world.encounter is not None and count != world.encounter.drones:
+        raise ConfigError(f"{world.source}: world.encounter.drones: the encounter places {world.encounter.drones} "
+                          f"drones every episode, not {count} (change drones: in the file)")
     vehicles = list(world.vehicles[:count])
     if not vehicles:
         raise ConfigError(f"{world.source}: world.vehicles: expected at least 1 vehicle to copy, got none")
