@@ -189,6 +189,11 @@ def test_bad_encounters_are_one_line_errors_naming_the_key(tmp_path: Path, encou
     assert "\n" not in message and f"{key}" in message and says in message, message
 
 
+def test_an_encounter_above_the_ground_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"world.encounter: the encounter's spawns rest on the ground"):
+        _load(tmp_path, {"type": "head_on"}, workspace={"min": [-8, -8, 1], "max": [8, 8, 6]})
+
+
 def test_a_bottleneck_gap_narrower_than_a_drone_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"gap_width_m: expected \[low, high\] with 0.6 <= low"):
         _load(tmp_path, {"type": "bottleneck", "gap_width_m": [0.3, 1]})

@@ -5,7 +5,7 @@ and one encounter type (`type:`), or several drawn per episode by weight (`mix:`
 episode draws a type, then that type's geometry from its ranges (a range is `[low, high]`,
 drawn uniformly, or one number), all from the episode's seeded generator (`layout.realize`):
 the same seed gives the same geometry. Keys (an example family; each key's default is in
-`schema.EncounterType`, overtaking's start_delay_s excepted: [3, 5])::
+`schema.EncounterType`, overtaking's start_delay_s `schema.OVERTAKING_START_DELAY_S`)::
 
     encounter:
       drones: 2                      # drone0, drone1, ... each with goal goal0, goal1, ...
@@ -32,7 +32,7 @@ counter-clockwise from east; the whole encounter turns with it) and `start_delay
 - converging (2 or more): drone k starts `radius_m` (drawn per drone) from `center` at bearing
   heading + k * 360/drones + a jitter of +-`angle_jitter_deg`; its goal is the opposite point.
 - overtaking (2 drones): one shared course of `length_m`; drone1 (the leader) starts `gap_m`
-  ahead of drone0 and waits `start_delay_s` (default [3, 5]) before it flies, so drone0 catches
+  ahead of drone0 and waits `start_delay_s` (default [3, 5] s) before it flies, so drone0 catches
   it up (the actions fly one speed: the leader is slow by waiting, not by a slower speed).
 - bottleneck (2 or more): a wall across the workspace through `center`, perpendicular to the
   heading, with a full-height gap of `gap_width_m` at `center`. Every drone starts on the
@@ -54,6 +54,7 @@ of every type fits the workspace around `center` at any heading; each draw keeps
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,8 +63,10 @@ from sitl_bridge.errors import ConfigError, Node
 from sitl_bridge.world.schema import (
     ENCOUNTER_TYPES,
     KEYS_OF,
+    OVERTAKING_START_DELAY_S,
     Encounter,
     EncounterType,
+    LidarConfig,
     Obstacle,
     Opening,
     Shape,
@@ -107,9 +110,12 @@ RANGE_BOUNDS = {
 an overtaking gap at least the spawn separation; a gap wider than an Iris (0.55 m)."""
 
 
-def parse_encounter(node: Node, workspace: Workspace, parse_lidar) -> Encounter:
+def parse_encounter(node: Node, workspace: Workspace, parse_lidar: Callable[[Node], LidarConfig]) -> Encounter:
     """Parse and check a `world.encounter:` section (`parse_lidar` reads its `lidar:`)."""
     node.mapping()
+    if not workspace.min_m[2] <= SPAWN_Z_M:
+        raise ConfigError(f"{node.source}: {node.path}: the encounter's spawns rest on the ground (z {SPAWN_Z_M}); "
+                          f"world.workspace.min z must be at most that, got {workspace.min_m[2]:g}")
     own = {"drones", "center", "altitude_m", "goal_size", "lidar", "mix"}
     if node.has("mix") and node.has("type"):
         raise node.get("type").error("either type: (one encounter type) or mix: (several), not both")
@@ -151,7 +157,7 @@ def _parse_type(node: Node, drones: int, own_keys: set[str]) -> EncounterType:
         raise node.get("type").error(f"a type for {drones} drones ({kind} takes exactly 2; "
                                      "converging and bottleneck take any number)")
     if kind == "overtaking" and not node.has("start_delay_s"):
-        start_delay = (3.0, 5.0)
+        start_delay = OVERTAKING_START_DELAY_S
     else:
         start_delay = _range(node, "start_delay_s", (0.0, 0.0))
     defaults = EncounterType(kind)

@@ -302,6 +302,10 @@ KEYS_OF = {
 """Each encounter type's own keys (besides type, weight, heading_deg, start_delay_s)."""
 
 
+OVERTAKING_START_DELAY_S = (3.0, 5.0)
+"""An overtaking's default `start_delay_s` (the leader's wait; every other type's is none)."""
+
+
 @dataclass(frozen=True)
 class EncounterType:
     """One encounter type's ranges (metres, seconds; angles in degrees as written)."""
