@@ -48,7 +48,8 @@ delay has passed (`info["entered"]` says when; it is in `env.agents` and scored 
 
 The loader checks every range (low <= high, inside its bounds) and that the largest geometry
 of every type fits the workspace around `center` at any heading; each draw keeps spawns
-`SPAWN_SEPARATION_M` apart and spawns and goals clear of obstacles (redrawn, seeded).
+`SPAWN_SEPARATION_M` apart and spawns and goal centres `sense.SPAWN_CLEARANCE_M` clear of obstacles
+(redrawn, seeded).
 """
 
 from __future__ import annotations
