@@ -46,6 +46,12 @@ def test_a_scenario_without_transponder_data_is_refused_in_one_line() -> None:
         orca_policy(REPO / "worlds" / "empty.yaml")
 
 
+def test_an_encounter_world_is_refused_in_one_line() -> None:
+    """Its goals and walls are drawn per episode; the policy's map is read once."""
+    with pytest.raises(ConfigError, match="world.encounter: the ORCA policy flies fixed-geometry worlds only"):
+        orca_policy("encounters")
+
+
 def test_separation_counts_episodes_closer_than_a_metre() -> None:
     near = [Trace(0, 0, 1, positions_enu_m=[[0, 0, 2], [0, 1, 2]]), Trace(0, 1, 1, positions_enu_m=[[0, 3, 2], [0, 1.5, 2]])]
     far = [Trace(1, 0, 2, positions_enu_m=[[0, 0, 2]]), Trace(1, 1, 2, positions_enu_m=[[5, 0, 2]])]

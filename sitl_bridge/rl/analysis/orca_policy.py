@@ -64,13 +64,16 @@ class OrcaPolicy:
     def __init__(self, scenario: Scenario, settings: OrcaSettings = OrcaSettings()) -> None:
         self.scenario = scenario
         self.settings = settings
+        world = scenario.world
+        if world.encounter is not None:  # goals and the bottleneck wall are drawn per episode
+            raise ConfigError(f"{world.source}: world.encounter: the ORCA policy flies fixed-geometry worlds only "
+                              "(its map and goals are read once, an encounter draws them per episode)")
         layout = observation_layout(scenario.task.observation)
         missing = [name for name in NEEDED if name not in layout]
         if missing:
             raise ConfigError(f"{scenario.task.source}: task.observation: the ORCA policy needs "
                               f"{', '.join(NEEDED)}; missing {', '.join(missing)}")
         self.layout = layout
-        world = scenario.world
         if any(o.randomize is not None for o in world.obstacles):
             raise ConfigError(f"{world.source}: obstacles drawn per episode: the ORCA policy's map needs fixed ones")
         if "goal_position" not in layout and any(g.randomize_min_m is not None for g in world.goals):
