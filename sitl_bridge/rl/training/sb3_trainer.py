@@ -4,7 +4,8 @@ The same run directory, loop and guarantees as the DQN `Trainer` (this class is 
 episode reset with its own seed, its records appended to `episodes.jsonl`, then a checkpoint;
 periodic greedy evaluations on the held-out seeds into `evals.jsonl`, the best kept as
 `best.safetensors`; TensorBoard under the same scalar names; the heartbeat for `--watchdog`.
-What differs is the learner (`rl/learner/sb3_learner.py`, SB3's own networks and updates) and
+What differs is the learner (`rl/learner/sb3_learner.py`, SB3's own networks and updates; the
+drones of a multi-drone scenario share its one policy, as DQN's drones share one network) and
 what a checkpoint holds:
 
     checkpoints/ckpt_*.safetensors   policy and optimizer state dicts, PPO's partial rollout,
@@ -64,14 +65,12 @@ class SB3Trainer(Trainer):
         self.collector = None
         self.env = DronesEnv(env_factory(spec.seed))
         try:
-            if self.env.num_drones != 1:
-                raise ConfigError(f"{spec.world}: {config.algorithm} trains single-drone scenarios only (this one "
-                                  f"has {self.env.num_drones} drones; train it with dqn)")
             random.seed(spec.seed)
             np.random.seed(spec.seed % 2**32)
             torch.manual_seed(spec.seed)
             self.learner = SB3Learner(config.algorithm, self.env.obs_dim, self.env.action_space,
-                                      config.sb3_arguments, seed=spec.seed, device=config.device)
+                                      config.sb3_arguments, seed=spec.seed, device=config.device,
+                                      num_drones=self.env.num_drones)
         except BaseException:
             self.env.close()
             raise
@@ -105,12 +104,12 @@ class SB3Trainer(Trainer):
         if self.shards is not None:
             buffer = self.learner.model.replay_buffer
             try:
-                self.shards.restore(buffer, self.learner.global_step)
+                self.shards.restore(buffer, self.learner.replay_rows)
             except ReplayShardError as exc:
                 buffer.pos, buffer.full = 0, False
                 self.warn(f"{exc}: resuming from {path.name} with an empty replay buffer (networks, optimizers "
                           "and counters are intact; the replay refills as training goes on)")
-            self.shards.prune(0, written_up_to=self.learner.global_step)  # episodes never checkpointed
+            self.shards.prune(0, written_up_to=self.learner.replay_rows)  # episodes never checkpointed
         self.episode_log.truncate(state["log_bytes"])
         self.recent_success.extend(state["recent_success"])
         self.evaluation_due = bool(state.get("evaluation_due", False))
@@ -118,7 +117,8 @@ class SB3Trainer(Trainer):
         self._kept = []
         for older in sorted(ckpt.list_checkpoints(self.checkpoint_dir)):
             try:
-                self._kept.append((older, int(ckpt.read_state(older)["global_step"])))
+                older_state = ckpt.read_state(older)
+                self._kept.append((older, int(older_state.get("replay_rows", older_state["global_step"]))))
             except (ckpt.CheckpointCorrupt, KeyError, TypeError, ValueError):
                 continue
         log.info("resumed %s from %s (episode %d)", self.run_dir, path.name, self.episode)
@@ -127,7 +127,7 @@ class SB3Trainer(Trainer):
         """Checkpoint the state after `self.episode` episodes; prune old checkpoints and shards."""
         path = ckpt.checkpoint_path(self.checkpoint_dir, self.episode)
         ckpt.save_checkpoint(path, self._state_tensors(), self._state_json(self.episode_log.size()))
-        self._kept.append((path, self.global_step))
+        self._kept.append((path, self.learner.replay_rows))
         while len(self._kept) > self.config.checkpoints_kept:
             old, _ = self._kept.pop(0)
             old.unlink(missing_ok=True)
@@ -161,20 +161,23 @@ class SB3Trainer(Trainer):
         return self.run_episode()
 
     def run_episode(self) -> list[EpisodeRecord]:
-        """Fly one training episode, learn from it as SB3 does, persist it."""
+        """Fly one training episode with every drone (one shared policy), learn from it as SB3
+        does, persist it."""
         learner = self.learner
         wall_start, cpu_start = time.perf_counter(), time.process_time()
-        episode, first_row = learner.episode, learner.global_step
+        episode, first_row = learner.episode, learner.replay_rows
         env_seed = episode_seed(self.spec.seed, episode)
         obs, reset_infos = self.env.reset(env_seed)
-        learner.start_episode(obs[0])
-        tally = EpisodeTally(1, reset_infos)
+        learner.start_episode(obs)
+        tally = EpisodeTally(self.env.num_drones, reset_infos)
         while self.env.live:
-            action = learner.act(obs[0])
-            result = self.env.step({0: action})
-            tally.add(0, logged_action(action), result.rewards[0], result.terminated[0], result.truncated[0],
-                      result.infos.get(0, {}))
-            learner.step(result.rewards[0], result.obs[0], result.terminated[0], result.truncated[0])
+            drones = list(self.env.live)
+            chosen = learner.act(drones)
+            result = self.env.step(chosen)
+            for i, action in chosen.items():
+                tally.add(i, logged_action(action), result.rewards[i], result.terminated[i], result.truncated[i],
+                          result.infos.get(i, {}))
+            learner.step(drones, result.rewards, result.obs, result.terminated, result.truncated)
             obs.update(result.obs)
         learner.end_episode()
         records = tally.records(episode=episode, wall_time_s=time.perf_counter() - wall_start, epsilon=0.0,
@@ -182,6 +185,6 @@ class SB3Trainer(Trainer):
                                 global_step=learner.global_step, env_seed=env_seed,
                                 cpu_time_s=time.process_time() - cpu_start)
         if self.shards is not None:
-            self.shards.append(learner.model.replay_buffer, first_row, learner.global_step)
+            self.shards.append(learner.model.replay_buffer, first_row, learner.replay_rows)
         self.persist(records, [])
         return records
