@@ -263,10 +263,3 @@ def test_td3_stopped_and_resumed_in_process_ends_as_an_uninterrupted_run(tmp_pat
         assert trainer.learner.updates > 0 and trainer.learner.model._n_updates > 1
     assert_same_run(runs["resumed"], runs["whole"])
 
-
-def test_sb3_refuses_a_multi_drone_scenario_in_one_line(tmp_path: Path) -> None:
-    result = sitl_bridge("train", "worlds/two_drones_empty.yaml", "--algorithm", "ppo", "--out", str(tmp_path))
-    assert result.returncode == 2
-    assert result.stderr.strip().splitlines()[-1].endswith(
-        "ppo trains single-drone scenarios only (this one has 2 drones; train it with dqn)")
-    assert not any(tmp_path.iterdir())
