@@ -45,6 +45,26 @@ def test_a_window_of_early_crashes_without_a_goal_warns_once_and_says_why() -> N
     assert "= -500" in messages[0] and "a crash -100" in messages[0]
 
 
+def test_the_warning_names_goal_seeking_exploration_its_default_and_its_cost() -> None:
+    (message,) = feed(EarlyEndWatch(max_steps=45, rewards=THESIS_REWARDS, gamma=0.99, window=10),
+                      [record("crash", 2)] * 10)
+    assert "train: guided_explore_episodes: 100" in message
+    assert "off by default" in message and "knows the static obstacles" in message
+
+
+def test_a_run_that_had_goal_seeking_exploration_is_told_to_give_it_more() -> None:
+    watch = EarlyEndWatch(max_steps=45, rewards=THESIS_REWARDS, gamma=0.99, window=10, guided_episodes=100)
+    (message,) = feed(watch, [record("crash", 2)] * 10)
+    assert "was on for the first 100 episodes" in message and "larger guided_explore_episodes" in message
+    assert "off by default" not in message
+
+
+def test_an_algorithm_without_goal_seeking_exploration_is_not_told_to_use_it() -> None:
+    watch = EarlyEndWatch(max_steps=45, rewards=THESIS_REWARDS, gamma=0.99, window=10, guided_episodes=None)
+    (message,) = feed(watch, [record("crash", 2)] * 10)
+    assert "guided_explore" not in message and "explore_repeat_max" in message
+
+
 @pytest.mark.parametrize("stream", [
     [record("crash", 3)] * 49 + [record("goal", 20)],           # a goal in the window
     [record("crash", 3)] * 40 + [record("timeout", 45)] * 10,   # 80 % early ends only
@@ -84,9 +104,11 @@ def test_on_the_committed_two_blocks_runs_it_names_exactly_the_seeds_that_never_
     assert failed and warned == failed
 
 
-def test_the_trainer_feeds_its_episodes_to_the_watch_and_warns(tmp_path: Path) -> None:
-    """The wiring: a trainer on a real scenario builds the watch from it, and the records it
-    persists reach the watch; the warning goes to the trainer's `warn`."""
+@pytest.mark.parametrize("guided", [0, 4])
+def test_the_trainer_feeds_its_episodes_to_the_watch_and_warns(tmp_path: Path, guided: int) -> None:
+    """The wiring: a trainer on a real scenario builds the watch from it and from its
+    `guided_explore_episodes`, and the records it persists reach the watch; the warning goes to
+    the trainer's `warn`."""
     from test_rl_helpers import tiny_config
 
     from sitl_bridge.rl.common.drones_env import scenario_env_factory
@@ -95,11 +117,13 @@ def test_the_trainer_feeds_its_episodes_to_the_watch_and_warns(tmp_path: Path) -
 
     world = str(ROOT / "worlds/empty.yaml")
     warnings: list[str] = []
-    with Trainer.start(tmp_path, RunSpec(world=world), tiny_config(), scenario_env_factory(world),
-                       progress=False, warn=warnings.append) as trainer:
+    with Trainer.start(tmp_path, RunSpec(world=world), tiny_config(guided_explore_episodes=guided),
+                       scenario_env_factory(world), progress=False, warn=warnings.append) as trainer:
         assert trainer.early_end is not None
         assert trainer.early_end.early_steps == load_scenario(world).task.max_steps // 4
+        assert trainer.early_end.guided_episodes == guided
         trainer.early_end.recent = deque(maxlen=3)
         trainer.persist([record("crash", 1, episode=k) for k in range(3)], [])
     assert len(warnings) == 1
     assert "learning to end its episodes early" in warnings[0]
+    assert ("was on for the first 4 episodes" in warnings[0]) == bool(guided)

@@ -40,19 +40,24 @@ def flying_on_value(per_step: float, gamma: float) -> float | None:
 class EarlyEndWatch:
     """Watches finished drone-episodes; `add` returns the warning once, when it first applies."""
 
-    def __init__(self, max_steps: int, rewards: dict[str, float], gamma: float, window: int = WINDOW) -> None:
+    def __init__(self, max_steps: int, rewards: dict[str, float], gamma: float, window: int = WINDOW,
+                 guided_episodes: int | None = 0) -> None:
         self.early_steps = max(1, int(EARLY_FRACTION * max_steps))
         self.rewards = rewards
         self.gamma = gamma
+        self.guided_episodes = guided_episodes
+        """The run's `guided_explore_episodes` (0: off; None: its algorithm has no such option), so that
+        the advice fits what it ran with."""
         self.recent: deque[tuple[str, int]] = deque(maxlen=window)
         self.warned = False
 
     @classmethod
-    def of(cls, scenario: Scenario | None, gamma: float) -> EarlyEndWatch | None:
+    def of(cls, scenario: Scenario | None, gamma: float, guided_episodes: int | None = 0) -> EarlyEndWatch | None:
         """The watch for `scenario` (None for an env without a scenario, e.g. a test's toy env)."""
         if scenario is None:
             return None
-        return cls(scenario.task.max_steps, {term.name: term.step_scale for term in scenario.task.rewards}, gamma)
+        return cls(scenario.task.max_steps, {term.name: term.step_scale for term in scenario.task.rewards}, gamma,
+                   guided_episodes=guided_episodes)
 
     def add(self, records: Iterable[EpisodeRecord]) -> str | None:
         """Count `records`; the warning text the first time the window shows the pattern."""
@@ -68,9 +73,23 @@ class EarlyEndWatch:
         self.warned = True
         return (f"no goal in the last {len(self.recent)} drone-episodes, and {share:.0%} of them crashed or left "
                 f"the workspace within {self.early_steps} steps: the agent is learning to end its episodes early"
-                f"{self._why()}. What it lacks is a first goal: exploration that travels (train: explore_repeat_max, "
-                "ez-greedy) or shaping that leads round obstacles (closer_to_goal: {along: path}) may give it one, "
-                "or another seed; see docs/scenarios.md on scenarios of your own")
+                f"{self._why()}. What it lacks is a first goal: {self._remedy()}exploration that travels "
+                "(train: explore_repeat_max, ez-greedy) or shaping that leads round obstacles "
+                "(closer_to_goal: {along: path}) may give it one, or another seed; see docs/scenarios.md on "
+                "scenarios of your own")
+
+    def _remedy(self) -> str:
+        """Goal-seeking exploration: the remedy measured on collapsed seeds (docs/findings.md), off by
+        default because its guide knows the static obstacles, which the agent does not see."""
+        cost = "its guide knows the static obstacles, which the agent does not see"
+        if self.guided_episodes is None:
+            return ""
+        if self.guided_episodes > 0:
+            return (f"goal-seeking exploration was on for the first {self.guided_episodes} episodes "
+                    f"(train: guided_explore_episodes; {cost}), and more of it (a larger guided_explore_episodes "
+                    "or guided_explore_share) may bring goals into the replay; ")
+        return ("goal-seeking exploration (train: guided_explore_episodes: 100; off by default: "
+                f"{cost}) gave one to most collapsed seeds measured; ")
 
     def _why(self) -> str:
         per_step, crash = self.rewards.get("per_step"), self.rewards.get("crash")

@@ -149,7 +149,8 @@ class Trainer:
         self.checkpoint_dir = self.run_dir / rd.CHECKPOINTS
         self.recent_success: deque[bool] = deque(maxlen=config.success_window)
         gamma = float(config.sb3_arguments.get("gamma", 0.99)) if config.algorithm != "dqn" else config.gamma
-        self.early_end = EarlyEndWatch.of(getattr(self.env.env, "scenario", None), gamma)
+        guided = config.guided_explore_episodes if config.algorithm == "dqn" else None  # a DQN option
+        self.early_end = EarlyEndWatch.of(getattr(self.env.env, "scenario", None), gamma, guided_episodes=guided)
         self._kept: list[tuple[Path, int]] = []  # (checkpoint, replay rows it needs)
         self._writer: TensorBoardLog | None = None
         self.stopped_early = False
