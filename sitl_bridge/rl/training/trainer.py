@@ -401,8 +401,8 @@ class Trainer:
                 self.save_checkpoint()
                 self.beat()
                 self._log_tensorboard(records)
-                bar.update(self.episode - before, explore_success=f"{self.success_rate():.2f}",
-                           epsilon=f"{records[0].epsilon:.3f}")
+                exploring = {"epsilon": f"{records[0].epsilon:.3f}"} if self.config.algorithm == "dqn" else {}
+                bar.update(self.episode - before, explore_success=f"{self.success_rate():.2f}", **exploring)
                 if self.evaluation_due and self._periodic_evaluation(bar):
                     self.stopped_early = True
                     break
