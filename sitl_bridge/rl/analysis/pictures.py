@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from sitl_bridge.envs.scenario import Scenario
+from sitl_bridge.rl.analysis.figure_file import save_figure
 from sitl_bridge.rl.common.action_names import ACTION_NAMES_BY_FRAME
 from sitl_bridge.rl.evaluation.rollout import Trace
 from sitl_bridge.world.layout import Layout, ObstaclePlacement
@@ -70,7 +71,7 @@ def draw_episode(scenario: Scenario, layout: Layout, traces: Sequence[Trace], ou
     try:
         if out.suffix.lower() == ".png":
             _draw_views(top, side, picture, upto=None)
-            fig.savefig(out, dpi=dpi or 110)
+            save_figure(fig, out, dpi=dpi or 110)
         else:
             _animate(fig, top, side, picture, out, fps, dpi or 80)
     finally:
@@ -115,7 +116,7 @@ def draw_grid(episodes: Sequence[EpisodePicture], out: str | Path, titles: Seque
         width = int(18 * cell_w * columns)
         legend = "\n".join(textwrap.fill(line, width) for line in action_legend(episodes[0].scenario).splitlines())
         fig.supxlabel(legend, fontsize=7)
-        fig.savefig(out, dpi=dpi)
+        save_figure(fig, out, dpi=dpi)
     finally:
         fig.clear()
     return out

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sitl_bridge.rl.analysis.figure_file import save_figure
 from sitl_bridge.rl.common.episode_log import read_records
 from sitl_bridge.rl.training.run_dir import BASELINE_FILE, EPISODES_FILE, EVALS_FILE, RUN_FILE
 
@@ -243,7 +244,7 @@ def plot_runs(run_dirs: Sequence[str | Path], out: str | Path | None = None, win
     fig.suptitle(title + (f"  ({shortest}-{longest} episodes)" if ragged else f"  ({longest} episodes)"), fontsize=10)
     fig.tight_layout()
     out = Path(out) if out else dirs[0] / "learning_curves.png"
-    fig.savefig(out, dpi=100)
+    save_figure(fig, out, dpi=100)
     plt.close(fig)
     return out
 
@@ -277,7 +278,7 @@ def plot_greedy_groups(groups: dict[str, Sequence[str | Path]], out: str | Path,
         ax.legend(loc="lower right", fontsize=8, title=f"mean, 95 % band where >= {MIN_BAND_RUNS} runs; ended runs hold their last value",
                   title_fontsize=7)
     fig.tight_layout()
-    fig.savefig(out, dpi=100)
+    save_figure(fig, out, dpi=100)
     plt.close(fig)
     return Path(out)
 
