@@ -142,6 +142,7 @@ class EpisodeRunner:
         self._previous_actions = [None] * self.num_drones
         self._yaw_targets_enu = [_yaw_enu(s) for s in snapshot.states]
         self._delays_s = snapshot.start_delays_s
+        self._commands_enu_m_s = [np.zeros(3) for _ in range(self.num_drones)]
         results = []
         for i in range(self.num_drones):
             view = self._view(i, snapshot, snapshot, crashed=False)
@@ -172,6 +173,8 @@ class EpisodeRunner:
             for i in range(self.num_drones):
                 code = int(actions.get(i, Action.HOVER)) if flying[i] else self._after_end(i)
                 velocities.append(self._code_velocity(code, i, before, config))
+        # what each drone was told to fly (ENU): reported in its info, so a flight's smoothness can be measured
+        self._commands_enu_m_s = [ned_to_enu(np.asarray(v, dtype=float)) for v in velocities]
         snapshot, collided = fly_watched(self.backend, velocities, config.duration_s, self.on_frame, yaws)
         if config.zero_velocity_s > 0.0:
             snapshot, stopped = fly_watched(self.backend, [np.zeros(3)] * self.num_drones, config.zero_velocity_s,
@@ -451,6 +454,7 @@ class EpisodeRunner:
             "outcome": outcome,
             "reward_terms": terms,
             "position_enu_m": view.position_enu_m.copy(),
+            "command_enu_m_s": self._commands_enu_m_s[view.index].copy(),
             "start_enu_m": view.start_enu_m.copy(),
             "goal_enu_m": view.goal_enu_m.copy(),
             "distance_to_goal_m": view.distance_to_goal_m,

@@ -95,6 +95,7 @@ class SitlEnv(gym.Env[np.ndarray, np.int64]):
     ## Info
     `step`, `sim_time_s` (simulated time since the episode's reset began), `action`, `outcome`
     (None or goal/crash/out/timeout), `reward_terms` (name -> scaled value), `position_enu_m`,
+    `command_enu_m_s` (the velocity setpoint the last action flew, ENU m/s; zero after a reset),
     `start_enu_m`, `goal_enu_m` (centre of the goal region), `distance_to_goal_m`, `crashed`,
     `near_obstacle`.
 

@@ -29,6 +29,10 @@ class Trace:
     positions_enu_m: list[list[float]] = field(default_factory=list)
     """Position after reset and after every step, when the env reports `position_enu_m`."""
     goal_enu_m: list[float] | None = None
+    sim_times_s: list[float] = field(default_factory=list)
+    """Simulated time after reset and after every step, when the env reports `sim_time_s`."""
+    commands_enu_m_s: list[list[float]] = field(default_factory=list)
+    """The velocity setpoint each step flew (ENU m/s), when the env reports `command_enu_m_s`."""
 
     @property
     def steps(self) -> int:
@@ -37,8 +41,17 @@ class Trace:
 
 def position_of(info: dict[str, Any]) -> list[float] | None:
     """The drone's position (ENU m) an env step or reset reported in its info, if any."""
-    value = info.get("position_enu_m")
+    return _vector(info, "position_enu_m")
+
+
+def _vector(info: dict[str, Any], key: str) -> list[float] | None:
+    value = info.get(key)
     return None if value is None else [float(v) for v in np.asarray(value).reshape(-1)]
+
+
+def _record_time(trace: Trace, info: dict[str, Any]) -> None:
+    if info.get("sim_time_s") is not None:
+        trace.sim_times_s.append(float(info["sim_time_s"]))
 
 
 def record_step(traces: dict[int, Trace], chosen: dict[int, int], result: Any) -> None:
@@ -52,6 +65,10 @@ def record_step(traces: dict[int, Trace], chosen: dict[int, int], result: Any) -
         position = position_of(info)
         if position is not None:
             trace.positions_enu_m.append(position)
+        _record_time(trace, info)
+        command = _vector(info, "command_enu_m_s")
+        if command is not None:
+            trace.commands_enu_m_s.append(command)
         if result.terminated[i] or result.truncated[i]:
             trace.outcome = episode_outcome(info, result.terminated[i], result.truncated[i])
 
@@ -71,6 +88,7 @@ def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable
             start = position_of(infos.get(i, {}))
             if start is not None:
                 trace.positions_enu_m.append(start)
+            _record_time(trace, infos.get(i, {}))
             goal = infos.get(i, {}).get("goal_enu_m")
             trace.goal_enu_m = None if goal is None else [float(v) for v in np.asarray(goal).reshape(-1)]
         while env.live:
