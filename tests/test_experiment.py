@@ -230,7 +230,7 @@ def _mtimes(folder: Path) -> dict[str, int]:
 def test_experiment_end_to_end(finished) -> None:
     file, out = finished
     results = json.loads((out / "results.json").read_text())
-    assert set(results) == {"empty", "transfer", "behaviour", "rules", "trees", "backends"}  # test_results_sections
+    assert set(results) == {"empty", "transfer", "behaviour", "rules", "trees", "backends", "algorithms"}
     empty = results["empty"]
     assert [s["seed"] for s in empty["seeds"]] == [0, 1]
     for seed in empty["seeds"]:

@@ -95,6 +95,10 @@ def _num(value: float | None, digits: int = 0) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _unit(value: float | None, digits: int, unit: str) -> str:
+    return "-" if value is None else f"{value:.{digits}f} {unit}"
+
+
 def _duration(seconds: float | None) -> str:
     if seconds is None:
         return "-"
@@ -132,7 +136,8 @@ def render(results: dict[str, Any], meta: dict[str, Any]) -> str:
         f"{meta['eval_episodes']} episodes on held-out seeds (definitions at the end).",
         "",
     ]
-    lines += _scenario_table(results) + _thesis_table(results) + _figures(results) + _transfer_section(results)
+    lines += _scenario_table(results) + _thesis_table(results) + _algorithms_table(results, meta)
+    lines += _figures(results) + _transfer_section(results)
     lines += _backends_section(results, meta)
     lines += _episodes_section(results) + _behaviour_section(results, meta) + _rules_section(results, meta)
     lines += _trees_section(results, meta)
@@ -187,6 +192,43 @@ def _thesis_table(results: dict[str, Any]) -> list[str]:
         lines.append(f"| `{stem}` | {_cell(t.get('shorthand', '-'))} | {_cell(t.get('result', 'not in the thesis'))} "
                      f"| {_cell(t.get('runs', '-'))} | {_cell(t.get('behaviour', '-'))} | {_cell(t.get('source', '-'))} "
                      f"| {_cell(seed_story(results[stem]['seeds']))} |")
+    return lines + [""]
+
+
+def _algorithms_table(results: dict[str, Any], meta: dict[str, Any]) -> list[str]:
+    """Learning algorithms and decision rates side by side (`algorithms_section`); nothing when
+    no scenario of the experiment has a `group:`."""
+    groups = results.get("algorithms")
+    if not groups:
+        return []
+    lines = ["## Learning algorithms and decision rates", "",
+             f"Per scenario (group), each row one algorithm and action setting, the same held-out episodes: every finished "
+             f"seed's best checkpoint flown greedily for {meta['eval_episodes']} episodes on reset seeds "
+             f"`eval_seeds({EVAL_SEED_BASE} + seed, n)`, none of those that chose the checkpoint. Success: pooled over "
+             "all held-out drone-episodes of the seeds, Wilson 95 % interval; per seed: lowest and highest. Seeds >= 90 %: "
+             f"held-out success of at least {100 * THRESHOLD:.0f} %. Episodes and wall time to 90 %: when the periodic "
+             "evaluation during training first reached it, median over the seeds that did (reached). Time to goal "
+             "(simulated s), path (m) and command change (m/s per s of flight: the summed change of the commanded velocity "
+             "between decisions over the flight time; 0 is one constant command) are means over the successful held-out "
+             "drone-episodes of all seeds; the path joins the positions at the decisions, so at 1 s decisions it can "
+             "cut a curve short.", "",
+             "| group | scenario | algorithm | actions | decision | seeds | success [95 % CI] | per seed | seeds >= 90 % "
+             "| reached 90 % | episodes to 90 % | wall time to 90 % | time to goal | path | command change |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for group, rows in groups.items():
+        for r in rows:
+            if not r["seeds"]:
+                lines.append(f"| {_cell(group)} | `{r['scenario']}` | | | | 0/{r['planned']} | not run "
+                             "| | | | | | | | |")
+                continue
+            spread = [s["success"] for s in r["seed_success"]]
+            lines.append(
+                f"| {_cell(group)} | `{r['scenario']}` | {r['algorithm']} | {r['action']} | {r['decision_s']:g} s "
+                f"| {r['seeds']}/{r['planned']} | {_pct(r['success'])}{_ci(r['success_ci95'])} "
+                f"| {_pct(min(spread))}-{_pct(max(spread))} | {r['seeds_90']}/{r['seeds']} | {r['reached_90']}/{r['seeds']} "
+                f"| {_num(r['episodes_to_90_median'])} | {_duration(r['wall_s_median'])} "
+                f"| {_unit(r['time_to_goal_s'], 1, 's')} | {_unit(r['path_m'], 2, 'm')} "
+                f"| {_num(r['command_change_m_s2'], 2)} |")
     return lines + [""]
 
 

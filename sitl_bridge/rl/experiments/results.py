@@ -6,8 +6,8 @@ results.json holds one object per scenario keyed by the scenario file's stem (`s
 `seed`, `greedy_success`, `collision_rate`, `episodes_to_90`, `wall_s`; `success_mean`,
 `success_ci95`), `transfer` (per comparison: `with`, `without`, `test`, `p_value`,
 `effect_size`, and with `control: true` a `control` summary with its `epsilon_max` and
-`with_vs_control`, the same test of with against it), and `rules`, `trees` and `backends` (the policies flown on each autopilot
-backend) when the modules that make them are installed (see `SECTION_HOOKS`). Numbers are plain JSON; an undefined one (no run, one seed) is null.
+`with_vs_control`, the same test of with against it), and `rules`, `trees`, `backends` (the policies flown on each autopilot
+backend) and `algorithms` (learning algorithms and decision rates per `group:`) when the modules that make them are installed (see `SECTION_HOOKS`). Numbers are plain JSON; an undefined one (no run, one seed) is null.
 
 Definitions (also printed in RESULTS.md):
 
@@ -38,7 +38,13 @@ from typing import Any
 from sitl_bridge.cores import core_counter, pin_next_core
 from sitl_bridge.rl.common.atomic import atomic_write_json, atomic_write_text
 from sitl_bridge.rl.common.episode_files import log_exists, open_log
-from sitl_bridge.rl.experiments import backends_section, rules_section, trees_section
+from sitl_bridge.rl.experiments import (
+    algorithms_section,
+    backends_section,
+    rules_section,
+    trees_section,
+)
+from sitl_bridge.rl.experiments.held_out import EPISODE_MEASURES, GREEDY_FILE, THRESHOLD
 from sitl_bridge.rl.experiments.runner import (
     ComparisonSpec,
     Experiment,
@@ -49,6 +55,7 @@ from sitl_bridge.rl.experiments.runner import (
     job_folder,
     run_of,
     scenario_root,
+    scenario_world,
     stage_folder,
 )
 from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
@@ -56,10 +63,6 @@ from sitl_bridge.rl.training.run_dir import EPISODES_FILE, EVALS_FILE
 
 log = logging.getLogger(__name__)
 
-THRESHOLD = 0.9
-"""Greedy success that counts as learned (the `_90` of `episodes_to_90`)."""
-GREEDY_FILE = "greedy_eval.json"
-"""Cache of a run's report evaluation, in its sweep job folder (skipped when still valid)."""
 TEST_NAME = ("Mann-Whitney U (two-sided) on episodes to 90 % greedy success; runs that never "
              "reached it count as their episode budget")
 SectionHook = Callable[..., None]
@@ -68,6 +71,7 @@ SECTION_HOOKS: dict[str, SectionHook] = {
     "rules": rules_section.add_results_section,
     "trees": trees_section.add_results_section,
     "backends": backends_section.add_results_section,
+    "algorithms": algorithms_section.add_results_section,
 }
 """Sections other modules add: each sets `results[name]` (the rules hook also
 `results["behaviour"]`; it may read the runs through each seed's `run_dir`, relative to `out`).
@@ -85,11 +89,16 @@ class EvalTask:
     seed: int
     episodes: int
     autopilot: str
+    measures: bool = False
+    """The report needs each episode's flight measures (`episodes` in the record): a cached
+    evaluation made before they were recorded is flown again."""
 
 
 def evaluate_run(task: EvalTask) -> dict[str, Any]:
     """Greedy evaluation of the run's best checkpoint on the report's evaluation seeds; cached in
-    the job folder, reused while the checkpoint, episodes and seeds are the same."""
+    the job folder, reused while the checkpoint, episodes and seeds are the same. The record:
+    `key`, `checkpoint_episode`, `result` (`EvalResult`) and `episodes`, one
+    `flight_measures.episode_measures` per drone-episode (absent from records made before it)."""
     from sitl_bridge.rl.learner.checkpoint import best_checkpoint, resolve_checkpoint
     from sitl_bridge.rl.learner.policy_file import network_digest, online_tensors
 
@@ -101,19 +110,22 @@ def evaluate_run(task: EvalTask) -> dict[str, Any]:
     if cache.is_file():
         try:
             cached = json.loads(cache.read_text())
-            if cached.get("key") == key:
+            if cached.get("key") == key and (EPISODE_MEASURES in cached or not task.measures):
                 return cached
         except ValueError:
             pass
     from sitl_bridge.rl.common.drones_env import scenario_env_factory
     from sitl_bridge.rl.evaluation.evaluate import evaluate_policy
+    from sitl_bridge.rl.evaluation.flight_measures import episode_measures
     from sitl_bridge.rl.learner.policy import policy_from_checkpoint
     from sitl_bridge.rl.training.run_dir import run_scenario
 
     world = str(run_scenario(task.run_dir))
-    result, _ = evaluate_policy(policy_from_checkpoint(checkpoint_file), scenario_env_factory(world, task.autopilot),
-                                world=world, episodes=task.episodes, seed=EVAL_SEED_BASE + task.seed)
-    record = {"key": key, "checkpoint_episode": int(state.get("episode", 0)), "result": result.to_dict()}
+    result, traces = evaluate_policy(policy_from_checkpoint(checkpoint_file),
+                                     scenario_env_factory(world, task.autopilot),
+                                     world=world, episodes=task.episodes, seed=EVAL_SEED_BASE + task.seed)
+    record = {"key": key, "checkpoint_episode": int(state.get("episode", 0)), "result": result.to_dict(),
+              EPISODE_MEASURES: [episode_measures(t) for t in traces]}
     atomic_write_json(cache, record)
     return record
 
@@ -274,7 +286,9 @@ def collect(experiment: Experiment, out: str | Path, *, workers: int = 1,
                 folders[(f"control:{comparison.name}", str(seed))] = job_folder(
                     control_root(out, comparison.name), comparison.target, seed)
     done = {key: path for key, path in folders.items() if finished(path) and run_of(path) is not None}
-    tasks = {key: EvalTask(str(path), str(run_of(path)), int(key[1]), experiment.eval_episodes, experiment.autopilot)
+    grouped = {s.stem for s in experiment.scenarios if s.group is not None}  # their table needs flight measures
+    tasks = {key: EvalTask(str(path), str(run_of(path)), int(key[1]), experiment.eval_episodes, experiment.autopilot,
+                           measures=key[0] in grouped)
              for key, path in done.items()}
     say(f"evaluating {len(tasks)} finished runs greedily ({experiment.eval_episodes} episodes each; "
         "cached runs are not evaluated again)")
@@ -290,8 +304,11 @@ def collect(experiment: Experiment, out: str | Path, *, workers: int = 1,
     results: dict[str, Any] = {}
     for scenario in experiment.scenarios:
         seeds, missing = group(scenario.stem)
-        results[scenario.stem] = {"world": _relative(Path(scenario.world), Path.cwd()), **summarize_seeds(seeds),
+        world = scenario_world(scenario, out)
+        results[scenario.stem] = {"world": _relative(Path(world), Path.cwd()), **summarize_seeds(seeds),
                                   "unfinished": missing, "thesis": scenario.thesis}
+        if scenario.group is not None:
+            results[scenario.stem]["group"] = scenario.group
     results["transfer"] = {c.name: _comparison(experiment, c, results, group) for c in experiment.comparisons}
     adjust_transfer_tests(results["transfer"])
     return results

@@ -12,6 +12,11 @@ An experiment file (`experiments/thesis.yaml`)::
           train: {episodes: 1500}     # overrides of that world's train: section (the budget)
           algorithm: ppo              # optional: dqn, ppo, sac or td3 (its key is then `<stem>_ppo`,
                                       # so one world can be listed once per algorithm)
+          action: {duration_s: 1.0}   # optional: changes of the world's task.action (its key gets
+                                      # `_1s`; other keys `_<key>-<value>`); trained on a copy
+                                      # of the world with them, `DIR/runs/worlds/<key>.yaml`
+          group: ER                   # optional: its row group in the table comparing learning
+                                      # algorithms and decision rates (`algorithms_section`)
           seeds: 0-2                  # optional: its own seeds (a baseline), not in a comparison
           thesis: {shorthand: ER, result: "stable", source: "thesis Table 3"}   # shown beside ours
       comparisons:                    # with vs without the earlier network, same seeds
@@ -56,7 +61,7 @@ from sitl_bridge.rl.experiments import sweep
 from sitl_bridge.rl.learner.config import load_train_config, parse_train_node
 from sitl_bridge.rl.training.run_dir import RUN_FILE
 
-RESERVED = frozenset({"transfer", "rules", "behaviour", "trees", "backends"})
+RESERVED = frozenset({"transfer", "rules", "behaviour", "trees", "backends", "algorithms"})
 """Top-level keys of results.json that are not scenarios."""
 INVOCATIONS_FILE = "invocations.jsonl"
 """`DIR/runs/invocations.jsonl`: one line per training invocation (workers, backend, --only, counts)."""
@@ -77,6 +82,11 @@ class ScenarioSpec:
     thesis: dict[str, str] = field(default_factory=dict)
     seeds: tuple[int, ...] | None = None
     """Its own seeds (e.g. fewer for a baseline), else the experiment's."""
+    action: dict[str, Any] = field(default_factory=dict)
+    """Changes of the world's `task.action` (e.g. the decision period): trained on a copy of the
+    world with them (`scenario_world`)."""
+    group: str | None = None
+    """Its row group in the learning-algorithm and decision-rate table (None: not in it)."""
 
 
 @dataclass(frozen=True)
@@ -157,7 +167,7 @@ def load_experiment(path: str | Path) -> Experiment:
     node.reject_unknown({"name", "seeds", "eval_episodes", "autopilot", "scenarios", "comparisons", "report"})
     scenarios: list[ScenarioSpec] = []
     for item in node.get("scenarios").list(min_len=1):
-        item.reject_unknown({"world", "train", "thesis", "seeds", "algorithm"})
+        item.reject_unknown({"world", "train", "thesis", "seeds", "algorithm", "action", "group"})
         world = str(Path(world_path(item.get("world"), base)).resolve())
         train = item.get("train", None)
         overrides = dict(train.value or {})
@@ -166,12 +176,15 @@ def load_experiment(path: str | Path) -> Experiment:
         config = parse_train_node(Node(overrides, train.source, train.path), load_train_config(world))
         # (a typo fails now, not after hours)
         stem = Path(world).stem + (f"_{config.algorithm}" if item.has("algorithm") and config.algorithm != "dqn" else "")
+        action = _action_changes(item.get("action"), world) if item.has("action") else {}
+        stem += "".join(_action_suffix(key, value) for key, value in action.items())
         if stem in RESERVED or any(s.stem == stem for s in scenarios):
-            raise item.get("world").error(f"a scenario file whose stem is unique and not one of "
-                                          f"{', '.join(sorted(RESERVED))}")
+            raise item.get("world").error(f"a scenario whose key (file stem, algorithm, action changes) is "
+                                          f"unique and not one of {', '.join(sorted(RESERVED))}")
         seeds = tuple(_seeds(item.get("seeds"))) if item.has("seeds") else None
-        scenarios.append(ScenarioSpec(world, stem, overrides, _thesis(item.get("thesis", {})), seeds))
-    by_world = {s.world: s.stem for s in scenarios}
+        group = item.get("group").string() if item.has("group") else None
+        scenarios.append(ScenarioSpec(world, stem, overrides, _thesis(item.get("thesis", {})), seeds, action, group))
+    by_world = {s.world: s.stem for s in scenarios if not s.action}  # a curriculum names unchanged worlds
     comparisons: list[ComparisonSpec] = []
     for item in node.get("comparisons", []).list():
         item.reject_unknown({"curriculum", "thesis", "control"})
@@ -222,6 +235,62 @@ def _seeds(node: Node) -> list[int]:
             raise node.error("seeds such as 0-9 or 0,3,5-7, or a list of integers") from None
     seeds = sorted({item.integer(minimum=0) for item in node.list(min_len=1)})
     return seeds
+
+
+def _action_changes(node: Node, world: str) -> dict[str, Any]:
+    """A scenario's `action:` changes, checked merged into its world's `task.action` now (a
+    decision period that is no multiple of the physics step fails here, not in a training run)."""
+    from sitl_bridge.envs.scenario import limits_of
+    from sitl_bridge.envs.task import parse_task
+    from sitl_bridge.world import load_world
+    from sitl_bridge.world.clock import divides
+    from sitl_bridge.world.loader import TASK_SPANS_S
+
+    if not isinstance(node.value, dict) or not node.value:
+        raise node.error("a mapping of task.action keys to change (e.g. {duration_s: 1.0})")
+    changes = dict(node.value)
+    loaded = load_world(world)
+    task = parse_task(Node(_changed_task(world, changes), f"{node.source}: {node.path} applied to {world}", "task"),
+                      limits_of(loaded))
+    for section, key, _ in TASK_SPANS_S:  # flown as whole physics steps on every backend
+        value = getattr(getattr(task, section), key)
+        if key in changes and value > 0 and not divides(loaded.physics.step_us, value):
+            raise node.get(key).error(f"a span that the world's physics step ({loaded.physics.step_us} us) divides")
+    return changes
+
+
+def _changed_task(world: str, changes: dict[str, Any]) -> dict[str, Any]:
+    task = dict(load_yaml(world).value.get("task") or {})
+    task["action"] = {**(task.get("action") or {}), **changes}
+    return task
+
+
+def _action_suffix(key: str, value: Any) -> str:
+    """`duration_s: 1.0` -> `_1s`; any other change -> `_<key>-<value>`."""
+    if key == "duration_s" and isinstance(value, (int, float)):
+        return f"_{value:g}s"
+    return f"_{key}-{value}".replace("/", "-").replace(" ", "")
+
+
+def scenario_world(scenario: ScenarioSpec, out: str | Path) -> str:
+    """The scenario file `scenario` trains on: its world, or with `action:` changes a copy of
+    the world with them, `out/runs/worlds/<stem>.yaml` (written when missing or different)."""
+    if not scenario.action:
+        return scenario.world
+    import yaml
+
+    from sitl_bridge.rl.common.atomic import atomic_write_text
+
+    data = dict(load_yaml(scenario.world).value)
+    data["task"] = _changed_task(scenario.world, scenario.action)
+    text = (f"# {Path(scenario.world).name} with task.action changed by an experiment: {scenario.action}\n"
+            "# (written by `sitl-bridge experiment`; edit the experiment file, not this copy)\n"
+            + yaml.safe_dump(data, sort_keys=False))
+    path = Path(out) / "runs" / "worlds" / f"{scenario.stem}.yaml"
+    if not path.is_file() or path.read_text() != text:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, text)
+    return str(path)
 
 
 def _thesis(node: Node) -> dict[str, str]:
@@ -313,7 +382,8 @@ def run_experiment(experiment: Experiment, out: str | Path, *, workers: int = 1,
     jobs = []
     for scenario in experiment.scenarios:
         if scenario.stem in stems:
-            jobs += sweep.plan(scenario.world, experiment.seeds_of(scenario), [(scenario.stem, scenario.overrides)],
+            jobs += sweep.plan(scenario_world(scenario, out), experiment.seeds_of(scenario),
+                               [(scenario.stem, scenario.overrides)],
                                scenario_root(out), autopilot=experiment.autopilot)
     say(f"experiment {experiment.name}: {len(jobs)} scenario runs under {out / 'runs'}")
     results = run(jobs)
