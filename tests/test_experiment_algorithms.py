@@ -195,6 +195,17 @@ def test_the_table_matches_the_runs_flown_again(tmp_path: Path) -> None:
         assert row["episodes_to_90_median"] == _median([t[0] for t in reached])
         assert row["wall_s_median"] == pytest.approx(_median([t[1] for t in reached]))
 
+    # an evaluation cached before the flight measures: kept where no table needs them, else flown again
+    seed0 = results["tiny"]["seeds"][0]
+    cache = (out / seed0["run_dir"]).parent / "greedy_eval.json"
+    record = json.loads(cache.read_text())
+    measures = record.pop("episodes")
+    cache.write_text(json.dumps(record))
+    task = res.EvalTask(str(cache.parent), str(out / seed0["run_dir"]), 0, EPISODES, "direct")
+    assert "episodes" not in res.evaluate_run(task)
+    res.collect(experiment, out, say=lambda _: None)
+    assert json.loads(cache.read_text())["episodes"] == measures
+
     # the velocity arm commands change between decisions; a seed that flew nothing would hide it
     assert any(f["change"] > 0 for f in flown["tiny_velocity_ppo_0.5s"])
     meta = {"name": "compare", "command": "c", "file": "f", "written": "w", "version": "v", "seeds_text": "0-1",
