@@ -214,3 +214,25 @@ def test_the_table_matches_the_runs_flown_again(tmp_path: Path) -> None:
     assert "## Learning algorithms and decision rates" in text
     row = rows["tiny_velocity_ppo_0.5s"]
     assert f"| E | `tiny_velocity_ppo_0.5s` | ppo | velocity | 0.5 s | 2/2 | {100 * row['success']:.0f} %" in text
+
+
+def test_the_sections_built_on_action_codes_skip_a_continuous_scenario(tmp_path: Path) -> None:
+    """Behaviour, rules, trees and the grid of typical episodes classify discrete codes: a
+    continuous scenario is skipped with the reason, before anything flies (a run directory that
+    does not exist is never read), and the discrete one beside it is not."""
+    from sitl_bridge.rl.analysis.behaviour import CONTINUOUS_ACTIONS, why_not_classified
+    from sitl_bridge.rl.experiments import rules_section, trees_section
+    from sitl_bridge.rl.experiments.episode_grid import scenario_grid
+    from sitl_bridge.rl.experiments.runner import ReportSettings
+
+    discrete, velocity = _worlds(tmp_path)
+    assert (why_not_classified(discrete), why_not_classified(velocity)) == (None, CONTINUOUS_ACTIONS)
+    results = {"v": {"world": str(velocity), "seeds": [{"seed": 0, "run_dir": "missing/run"}]}}
+    rules_section.add_results_section(results, tmp_path, settings=ReportSettings(), say=lambda _: None)
+    assert results["behaviour"]["v"] == {"status": "skipped", "reason": CONTINUOUS_ACTIONS}
+    assert results["rules"] == []
+    pytest.importorskip("sklearn")
+    trees_section.add_results_section(results, tmp_path, settings=ReportSettings(), say=lambda _: None)
+    assert results["trees"]["v"] == {"status": "skipped", "reason": CONTINUOUS_ACTIONS}
+    with pytest.raises(ValueError, match="continuous velocity actions"):
+        scenario_grid("v", results["v"], tmp_path, episodes_per_seed=1, cells=1, seed=0)

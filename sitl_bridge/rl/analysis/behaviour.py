@@ -30,6 +30,7 @@ import math
 from collections import Counter, defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -37,6 +38,17 @@ from sitl_bridge.envs.features import travel_frame
 from sitl_bridge.envs.priority import priorities
 from sitl_bridge.rl.analysis.behaviour_summary import CLIMB_OVER_M, SIDESTEP_M, path_geometry
 from sitl_bridge.rl.evaluation.rollout import Trace
+
+CONTINUOUS_ACTIONS = ("continuous velocity actions: behaviour classes, rules and distilled trees read the "
+                      "discrete action codes (a continuous policy's manoeuvres are not classified yet)")
+"""Why a scenario with `task.action.type: velocity` is left out of the analyses built on codes."""
+
+
+def why_not_classified(world: str | Path) -> str | None:
+    """Why the greedy episodes of scenario file `world` cannot be classified (None: they can)."""
+    from sitl_bridge.envs.scenario import load_scenario
+
+    return CONTINUOUS_ACTIONS if load_scenario(world).task.action.continuous else None
 
 MOVE_M = 0.5
 """A step displacing this much moves (one 1 m/s action for 1 s flies about 1 m)."""

@@ -96,8 +96,11 @@ def scenario_grid(stem: str, scenario: dict[str, Any], out: str | Path, *, episo
     """The grid of one scenario of results.json (its finished seeds) at `out/figures/<stem>_episodes.png`;
     redrawn only when a checkpoint or the settings changed (`<stem>_episodes.json` beside it).
     Returns the grid's description with `figure` (relative to `out`)."""
+    from sitl_bridge.rl.analysis.behaviour import why_not_classified
     from sitl_bridge.rl.experiments import report_cache
 
+    if why := why_not_classified(Path(scenario["world"]).resolve()):  # the grid groups episodes by behaviour
+        raise ValueError(why)
     out = Path(out)
     figure = Path("figures") / f"{stem}_episodes.png"
     runs = [(int(s["seed"]), out / s["run_dir"]) for s in scenario["seeds"]]

@@ -55,8 +55,8 @@ from sitl_bridge.rl.experiments.runner import (
     job_folder,
     run_of,
     scenario_root,
-    scenario_world,
     stage_folder,
+    trained_world,
 )
 from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
 from sitl_bridge.rl.training.run_dir import EPISODES_FILE, EVALS_FILE
@@ -304,7 +304,7 @@ def collect(experiment: Experiment, out: str | Path, *, workers: int = 1,
     results: dict[str, Any] = {}
     for scenario in experiment.scenarios:
         seeds, missing = group(scenario.stem)
-        world = scenario_world(scenario, out)
+        world = trained_world(scenario, out)
         results[scenario.stem] = {"world": _relative(Path(world), Path.cwd()), **summarize_seeds(seeds),
                                   "unfinished": missing, "thesis": scenario.thesis}
         if scenario.group is not None:

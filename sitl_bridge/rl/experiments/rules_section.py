@@ -32,6 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from sitl_bridge.rl.analysis.behaviour import why_not_classified
 from sitl_bridge.rl.analysis.candidate_rules import ANALYSIS_VERSION
 from sitl_bridge.rl.experiments import report_cache
 from sitl_bridge.rl.experiments.runner import RESERVED, ReportSettings
@@ -166,6 +167,9 @@ def add_results_section(results: dict[str, Any], out: str | Path, *, settings: R
     for stem in scenario_stems(results):
         if not results[stem]["seeds"]:
             behaviour[stem] = {"status": "not run", "reason": "no finished runs"}
+            continue
+        if why := why_not_classified(scenario_world(results, stem)):
+            behaviour[stem] = {"status": "skipped", "reason": why}
             continue
         try:
             entry = _scenario_entry(stem, results, out, order[stem], settings, say)

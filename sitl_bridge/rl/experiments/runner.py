@@ -84,7 +84,7 @@ class ScenarioSpec:
     """Its own seeds (e.g. fewer for a baseline), else the experiment's."""
     action: dict[str, Any] = field(default_factory=dict)
     """Changes of the world's `task.action` (e.g. the decision period): trained on a copy of the
-    world with them (`scenario_world`)."""
+    world with them (`trained_world`)."""
     group: str | None = None
     """Its row group in the learning-algorithm and decision-rate table (None: not in it)."""
 
@@ -272,7 +272,7 @@ def _action_suffix(key: str, value: Any) -> str:
     return f"_{key}-{value}".replace("/", "-").replace(" ", "")
 
 
-def scenario_world(scenario: ScenarioSpec, out: str | Path) -> str:
+def trained_world(scenario: ScenarioSpec, out: str | Path) -> str:
     """The scenario file `scenario` trains on: its world, or with `action:` changes a copy of
     the world with them, `out/runs/worlds/<stem>.yaml` (written when missing or different)."""
     if not scenario.action:
@@ -382,7 +382,7 @@ def run_experiment(experiment: Experiment, out: str | Path, *, workers: int = 1,
     jobs = []
     for scenario in experiment.scenarios:
         if scenario.stem in stems:
-            jobs += sweep.plan(scenario_world(scenario, out), experiment.seeds_of(scenario),
+            jobs += sweep.plan(trained_world(scenario, out), experiment.seeds_of(scenario),
                                [(scenario.stem, scenario.overrides)],
                                scenario_root(out), autopilot=experiment.autopilot)
     say(f"experiment {experiment.name}: {len(jobs)} scenario runs under {out / 'runs'}")

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from sitl_bridge.rl.analysis.behaviour import why_not_classified
 from sitl_bridge.rl.experiments import report_cache
 from sitl_bridge.rl.experiments.runner import RESERVED, ReportSettings
 from sitl_bridge.rl.experiments.seeds import EVAL_SEED_BASE
@@ -110,6 +111,9 @@ def add_results_section(results: dict[str, Any], out: str | Path, *, settings: R
     for stem in (key for key in results if key not in RESERVED):
         if not results[stem]["seeds"]:
             trees[stem] = {"status": "not run", "reason": "no finished runs"}
+            continue
+        if why := why_not_classified(Path(results[stem]["world"]).resolve()):
+            trees[stem] = {"status": "skipped", "reason": why}
             continue
         try:
             trees[stem] = _tree_entry(stem, results, out, settings, say)
