@@ -236,3 +236,28 @@ def test_the_sections_built_on_action_codes_skip_a_continuous_scenario(tmp_path:
     assert results["trees"]["v"] == {"status": "skipped", "reason": CONTINUOUS_ACTIONS}
     with pytest.raises(ValueError, match="continuous velocity actions"):
         scenario_grid("v", results["v"], tmp_path, episodes_per_seed=1, cells=1, seed=0)
+
+
+def test_the_trained_copy_of_a_world_keeps_its_mesh_files(tmp_path: Path) -> None:
+    from sitl_bridge.rl.experiments.runner import trained_world
+    from sitl_bridge.world import load_world
+
+    folder = tmp_path / "worlds"
+    folder.mkdir()
+    corners = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    (folder / "cube.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in corners) + "f 1 2 4\nf 5 6 8\n")
+    data = yaml.safe_load((worlds_dir() / "empty.yaml").read_text())
+    data["world"]["obstacles"] = [{"name": "cube", "shape": "mesh", "file": "cube.obj", "size": [1, 1, 1],
+                                   "position": [3, 4, 1]}]
+    (folder / "mesh.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    path = tmp_path / "compare.yaml"
+    path.write_text(f"experiment:\n  scenarios:\n    - world: {folder / 'mesh.yaml'}\n"
+                    "      action: {duration_s: 0.5}\n")
+    (scenario,) = load_experiment(path).scenarios
+    copy = Path(trained_world(scenario, tmp_path / "out"))
+    assert copy == tmp_path / "out" / "runs" / "worlds" / "mesh_0.5s.yaml"
+    world = load_world(copy)
+    assert world.obstacles[0].shape.mesh_file == str(folder / "cube.obj")
+    assert yaml.safe_load(copy.read_text())["task"]["action"]["duration_s"] == 0.5
+    written = copy.stat().st_mtime_ns
+    assert trained_world(scenario, tmp_path / "out") == str(copy) and copy.stat().st_mtime_ns == written

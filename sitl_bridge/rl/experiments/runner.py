@@ -281,16 +281,29 @@ def trained_world(scenario: ScenarioSpec, out: str | Path) -> str:
 
     from sitl_bridge.rl.common.atomic import atomic_write_text
 
-    data = dict(load_yaml(scenario.world).value)
+    path = Path(out) / "runs" / "worlds" / f"{scenario.stem}.yaml"
+    data = _rebased(dict(load_yaml(scenario.world).value), Path(scenario.world).parent, path.parent)
     data["task"] = _changed_task(scenario.world, scenario.action)
     text = (f"# {Path(scenario.world).name} with task.action changed by an experiment: {scenario.action}\n"
             "# (written by `sitl-bridge experiment`; edit the experiment file, not this copy)\n"
             + yaml.safe_dump(data, sort_keys=False))
-    path = Path(out) / "runs" / "worlds" / f"{scenario.stem}.yaml"
     if not path.is_file() or path.read_text() != text:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, text)
     return str(path)
+
+
+def _rebased(value: Any, source: Path, target: Path) -> Any:
+    """`value` with every relative `file:` (an obstacle's mesh, relative to its world file) made
+    relative to `target`, where the copy of the world is written."""
+    if isinstance(value, list):
+        return [_rebased(v, source, target) for v in value]
+    if not isinstance(value, dict):
+        return value
+    rebased = {k: _rebased(v, source, target) for k, v in value.items()}
+    if isinstance(rebased.get("file"), str) and not Path(rebased["file"]).is_absolute():
+        rebased["file"] = os.path.relpath((source / rebased["file"]).resolve(), Path(target).resolve())
+    return rebased
 
 
 def _thesis(node: Node) -> dict[str, str]:
