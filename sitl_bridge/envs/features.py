@@ -17,14 +17,22 @@ Each list item is a name (`- velocity`) or a one-key mapping with options
 | `transponder` | 6*count | other drones' x, y, z, vx, vy, vz (zeros if absent) | workspace, +- max speed |
 | `travel_goal_offset` | 3 | goal minus position in the own travel frame (right, forward, up) | +- workspace diagonal |
 | `travel_velocity` | 3 | own velocity in the own travel frame | +- max speed |
-| `travel_others` | 6*count | per other drone: its position minus own, its velocity minus own, in the own travel frame (zeros if absent) | +- diagonal, +- 2 max speed |
+| `travel_others` | 6*count | per other drone: its position minus own, its velocity minus own, in the own travel frame (zeros if absent; see below for `order` and `absent`) | +- diagonal, +- 2 max speed |
 | `line_distance` | 1 | distance from the line through start and goal | [0, diagonal] |
 | `lidar` | rays | ray distances of the listed groups (default all three) | [0, range] |
 | `lidar_change` | rays | each ray's distance minus its distance one action earlier (0 at reset): how the surroundings moved relative to the drone | +- range |
 | `lidar_flags` | 2 | the lidar's near and crash flags (0/1) | [0, 1] |
 | `dummy` | N | zeros, to keep input sizes equal across scenarios | [-1, 1] |
 
-`count` defaults to drones-1 (at least 1). Priority: the rank of the drone under the scenario's
+`count` defaults to drones-1 (at least 1). One network for worlds of 2, 3 and 4 drones: give
+`travel_others: {count: 3, order: nearest, absent: far}` in all of them (the encounter family
+does): the observation has the same size everywhere, slot 0 is always the nearest other drone
+(`order: nearest`: slots sorted by distance, nearest first; default `index`: by drone number),
+and a slot with no drone behind it reads `ABSENT_FAR` (`absent: far`): as far behind as any
+drone can be (forward = minus the workspace diagonal, right and up 0) and moving exactly like
+the own drone (relative velocity 0), i.e. a drone that is never closing and never near, so a
+rule or ORCA testing distances or closing speeds reads no conflict there (default `zeros`: all
+six zero, which reads as a drone at the own position). Priority: the rank of the drone under the scenario's
 `task.priority` rule (`envs/priority.py`; default `lower_coordinate_yields`: lower north, then
 lower east start coordinate = lower priority, the thesis's "lower GPS coordinates hovers"),
 scaled to [0, 1]; with one drone it is 1.
@@ -122,10 +130,10 @@ def _decimals(options: Node) -> int | None:
     return None if node.value is None else node.integer(minimum=0, maximum=6)
 
 
-def _count(options: Node, limits: ScenarioLimits) -> int:
+def _count(options: Node, limits: ScenarioLimits, extra: frozenset[str] = frozenset()) -> int:
     if options.value is None:
         return max(1, limits.num_drones - 1)
-    options.reject_unknown({"count"})
+    options.reject_unknown({"count", *extra})
     return options.get("count", max(1, limits.num_drones - 1)).integer(minimum=1, maximum=64)
 
 
@@ -221,16 +229,41 @@ def _travel_velocity(options: Node, limits: ScenarioLimits) -> Feature:
                    lambda v: travel_frame(v.start_enu_m, v.goal_enu_m) @ v.velocity_enu_m_s)
 
 
+TRAVEL_OTHERS_ORDERS = ("index", "nearest")
+TRAVEL_OTHERS_ABSENT = ("zeros", "far")
+
+
+def absent_far(diagonal_m: float) -> np.ndarray:
+    """`travel_others`' six values for an empty slot under `absent: far`: a drone the workspace
+    diagonal straight behind (the farthest any drone can be), with no relative velocity."""
+    return np.array([0.0, -diagonal_m, 0.0, 0.0, 0.0, 0.0])
+
+
+def _choice(options: Node, key: str, choices: tuple[str, ...]) -> str:
+    if options.value is None or not options.has(key):
+        return choices[0]
+    return options.get(key).string(choices)
+
+
 def _travel_others(options: Node, limits: ScenarioLimits) -> Feature:
-    count = _count(options, limits)
+    count = _count(options, limits, frozenset({"order", "absent"}))
+    nearest = _choice(options, "order", TRAVEL_OTHERS_ORDERS) == "nearest"
+    far = _choice(options, "absent", TRAVEL_OTHERS_ABSENT) == "far"
     bound = np.tile(np.concatenate([np.full(3, limits.diagonal_m), np.full(3, 2 * limits.max_speed_m_s)]),
                     count)
+    empty = absent_far(limits.diagonal_m) if far else np.zeros(6)
 
     def compute(v: DroneView) -> np.ndarray:
         rotation = travel_frame(v.start_enu_m, v.goal_enu_m)
         offsets = (v.others_position_enu_m.reshape(-1, 3) - v.position_enu_m) @ rotation.T
         closing = (v.others_velocity_enu_m_s.reshape(-1, 3) - v.velocity_enu_m_s) @ rotation.T
-        return _padded(np.hstack([offsets, closing]), count, 6).reshape(-1)
+        rows = np.hstack([offsets, closing])
+        if nearest:  # stable: equal distances keep drone order
+            rows = rows[np.argsort(np.linalg.norm(offsets, axis=1), kind="stable")]
+        out = np.tile(empty, (count, 1))
+        n = min(count, rows.shape[0])
+        out[:n] = rows[:n]
+        return out.reshape(-1)
 
     return Feature("travel_others", -bound, bound, compute)
 
