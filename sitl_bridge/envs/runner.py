@@ -462,4 +462,9 @@ class EpisodeRunner:
             "near_obstacle": view.near_obstacle,
             # a late entry (`world.encounter` start delay): False while the drone is held at its start
             "entered": not self._held(view.index),
+            # the encounter type drawn this episode (`world.encounter`; None in other worlds) and
+            # whether a drone of it enters late (per-type evaluation tables group by both)
+            "encounter": self._snapshot.encounter,
+            "late_entry": self._snapshot.encounter is not None and self._snapshot.encounter != "overtaking"
+                          and any(d > 0.0 for d in self._delays_s),
         }

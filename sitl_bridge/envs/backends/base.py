@@ -93,6 +93,8 @@ class Snapshot:
     start_delays_s: tuple[float, ...] = ()
     """Per vehicle: how long after the episode start it is held hovering, its actions ignored (a
     late entry of `world.encounter`; empty: every vehicle flies from the start)."""
+    encounter: str | None = None
+    """The `world.encounter` type drawn this episode (None: not an encounter world)."""
     obstacles: tuple[ObstaclePlacement, ...] = ()
     """The obstacles as placed this episode (randomised per the world; a mover's placement is
     where its route is anchored, not where it is now)."""

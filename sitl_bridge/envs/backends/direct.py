@@ -471,4 +471,5 @@ class DirectBackend:
             goals=goals,  # type: ignore[arg-type]  # load_scenario checks every vehicle has a goal
             obstacles=layout.obstacles,
             start_delays_s=layout.start_delays_s,
+            encounter=layout.encounter,
         )

@@ -358,4 +358,5 @@ class SessionBackend:
             goals=tuple(layout.goal_of(i) for i in range(self.num_drones)),  # type: ignore[arg-type]
             obstacles=layout.obstacles,
             start_delays_s=layout.start_delays_s,
+            encounter=layout.encounter,
         )

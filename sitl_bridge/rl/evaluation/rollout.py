@@ -33,6 +33,8 @@ class Trace:
     """Simulated time after reset and after every step, when the env reports `sim_time_s`."""
     commands_enu_m_s: list[list[float]] = field(default_factory=list)
     """The velocity setpoint each step flew (ENU m/s), when the env reports `command_enu_m_s`."""
+    encounter: str | None = None
+    """The episode's encounter type (`encounter_label`; None outside `world.encounter` worlds)."""
 
     @property
     def steps(self) -> int:
@@ -52,6 +54,15 @@ def _vector(info: dict[str, Any], key: str) -> list[float] | None:
 def _record_time(trace: Trace, info: dict[str, Any]) -> None:
     if info.get("sim_time_s") is not None:
         trace.sim_times_s.append(float(info["sim_time_s"]))
+
+
+def encounter_label(info: dict[str, Any]) -> str | None:
+    """The encounter type an env reported in a drone's info (`world.encounter`): its kind, with
+    ", late entry" when a drone of it entered late (overtaking's waiting leader is its kind)."""
+    kind = info.get("encounter")
+    if kind is None:
+        return None
+    return f"{kind}, late entry" if info.get("late_entry") else str(kind)
 
 
 def record_step(traces: dict[int, Trace], chosen: dict[int, int], result: Any) -> None:
@@ -81,29 +92,39 @@ def rollout(env: DronesEnv, policy: Callable[[np.ndarray], int], seeds: Iterable
     traces: list[Trace] = []
     for episode, seed in enumerate(seeds):
         obs, infos = env.reset(seed)
+        mine = fly_episode(env, policy, episode, seed, obs, infos, videos)
+        traces.extend(mine)
+        if on_episode is not None:
+            on_episode(mine)
+    return traces
+
+
+def fly_episode(env: DronesEnv, policy: Callable[[np.ndarray], int], episode: int, seed: int,
+                obs: dict[int, np.ndarray], infos: dict[int, dict[str, Any]], videos: Any = None) -> list[Trace]:
+    """Fly the episode `env` was just reset into (`obs`, `infos`: what the reset returned) to its
+    end, every drone acting with `policy` on its own observation; one Trace per drone."""
+    obs = dict(obs)
+    if videos is not None:
+        videos.add(env.render())
+    mine = {i: Trace(episode, i, seed) for i in range(env.num_drones)}
+    for i, trace in mine.items():
+        start = position_of(infos.get(i, {}))
+        if start is not None:
+            trace.positions_enu_m.append(start)
+        _record_time(trace, infos.get(i, {}))
+        goal = infos.get(i, {}).get("goal_enu_m")
+        trace.encounter = encounter_label(infos.get(i, {}))
+        trace.goal_enu_m = None if goal is None else [float(v) for v in np.asarray(goal).reshape(-1)]
+    while env.live:
+        chosen = {i: policy(obs[i]) for i in env.live}
+        result = env.step(chosen)
         if videos is not None:
             videos.add(env.render())
-        mine = {i: Trace(episode, i, seed) for i in range(env.num_drones)}
-        for i, trace in mine.items():
-            start = position_of(infos.get(i, {}))
-            if start is not None:
-                trace.positions_enu_m.append(start)
-            _record_time(trace, infos.get(i, {}))
-            goal = infos.get(i, {}).get("goal_enu_m")
-            trace.goal_enu_m = None if goal is None else [float(v) for v in np.asarray(goal).reshape(-1)]
-        while env.live:
-            chosen = {i: policy(obs[i]) for i in env.live}
-            result = env.step(chosen)
-            if videos is not None:
-                videos.add(env.render())
-            record_step(mine, chosen, result)
-            obs.update(result.obs)
-        traces.extend(mine.values())
-        if videos is not None:
-            videos.end_episode(episode)
-        if on_episode is not None:
-            on_episode(list(mine.values()))
-    return traces
+        record_step(mine, chosen, result)
+        obs.update(result.obs)
+    if videos is not None:
+        videos.end_episode(episode)
+    return list(mine.values())
 
 
 EVAL_SEED_OFFSET = 1_000_003
