@@ -46,10 +46,18 @@ def test_a_scenario_without_transponder_data_is_refused_in_one_line() -> None:
         orca_policy(REPO / "worlds" / "empty.yaml")
 
 
-def test_an_encounter_world_is_refused_in_one_line() -> None:
-    """Its goals and walls are drawn per episode; the policy's map is read once."""
-    with pytest.raises(ConfigError, match="world.encounter: the ORCA policy flies fixed-geometry worlds only"):
-        orca_policy("encounters")
+def test_an_encounter_world_on_world_frame_inputs_is_refused_in_one_line(tmp_path: Path) -> None:
+    """Its goals and walls are drawn per episode; the world-frame policy's map is read once (the
+    shipped encounter worlds observe agent-relative inputs: the travel-frame ORCA flies them)."""
+    import yaml
+
+    root = yaml.safe_load((REPO / "worlds" / "encounters.yaml").read_text())
+    root["task"]["observation"] = ["position", "velocity", "own_id", "transponder", "goal_position"]
+    path = tmp_path / "encounters_world_frame.yaml"
+    path.write_text(yaml.safe_dump(root))
+    with pytest.raises(ConfigError, match="world.encounter: the ORCA policy on world-frame observations flies "
+                                          "fixed-geometry worlds only"):
+        orca_policy(path)
 
 
 def test_separation_counts_episodes_closer_than_a_metre() -> None:

@@ -19,13 +19,14 @@ Per decision, one drone, no central planner and no messages:
    `OrcaPolicy.velocity(obs)`.
 
 The observation must hold `position`, `velocity`, `own_id` (which drone: its goal, its action
-mapping) and `transponder`; the goal comes from `goal_position` when observed, else from the world
+mapping) and `transponder` (an agent-relative observation instead: `rl.analysis.orca_travel`,
+which `orca_policy` picks for it, e.g. in the encounter worlds); the goal comes from `goal_position` when observed, else from the world
 file (fixed goals only). Static obstacles must be fixed (not drawn per episode): they are the map.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -37,37 +38,25 @@ from sitl_bridge.envs.scenario import Scenario, load_scenario
 from sitl_bridge.errors import ConfigError
 from sitl_bridge.frames import ned_to_enu
 from sitl_bridge.rl.analysis.orca import HalfPlane, Neighbour, orca_velocity
+from sitl_bridge.rl.analysis.orca_actions import OVERSHOOT, OrcaSettings, choose_action
+from sitl_bridge.rl.analysis.orca_travel import TravelOrcaPolicy, reads_travel_frame
 from sitl_bridge.rl.common.action_names import ACTION_NAMES_BY_FRAME
 from sitl_bridge.world.layout import GoalPlacement, realize
 
 NEEDED = ("position", "velocity", "own_id", "transponder")
 """Observation features the ORCA policy reads."""
-OVERSHOOT = 1.5
-"""A move is clear when the map is free at its step's end and this many steps along it."""
-
-
-@dataclass(frozen=True)
-class OrcaSettings:
-    """ORCA's parameters (defaults: a 1 m separation target with margin for 1 s decisions)."""
-
-    radius_m: float = 0.6
-    """Each drone's radius: two keep 1.2 m between centres, above the 1 m separation minimum."""
-    time_horizon_s: float = 5.0
-    """Conflicts are looked for this far ahead (tau)."""
-    vertical_clearance_m: float = 1.2
-    """Another drone further above or below than this is no conflict."""
-
-
 class OrcaPolicy:
     """The ORCA policy of one scenario: call it with one drone's observation, get an action code."""
 
-    def __init__(self, scenario: Scenario, settings: OrcaSettings = OrcaSettings()) -> None:
+    def __init__(self, scenario: Scenario, settings: OrcaSettings | None = None) -> None:
         self.scenario = scenario
-        self.settings = settings
+        self.settings = settings or OrcaSettings()
         world = scenario.world
         if world.encounter is not None:  # goals and the bottleneck wall are drawn per episode
-            raise ConfigError(f"{world.source}: world.encounter: the ORCA policy flies fixed-geometry worlds only "
-                              "(its map and goals are read once, an encounter draws them per episode)")
+            raise ConfigError(f"{world.source}: world.encounter: the ORCA policy on world-frame observations flies "
+                              "fixed-geometry worlds only (its map and goals are read once, an encounter draws them "
+                              "per episode); observe travel_goal_offset, travel_velocity and travel_others for the "
+                              "travel-frame ORCA (rl/analysis/orca_travel.py)")
         layout = observation_layout(scenario.task.observation)
         missing = [name for name in NEEDED if name not in layout]
         if missing:
@@ -170,36 +159,12 @@ class OrcaPolicy:
         return choose_action(wanted, planes, moves, self.action.speed_m_s, self.clear_moves(obs, moves))
 
 
-def choose_action(wanted: np.ndarray, planes: list[HalfPlane], candidates: np.ndarray, speed: float,
-                  clear: np.ndarray | None = None) -> int:
-    """The action code (row of `candidates`, ENU m/s) that flies ORCA's velocity `wanted` best.
-
-    Only codes inside every half-plane (horizontally) are considered while any is; of those, when
-    ORCA wants to move (at least half the action speed), the one pointing most nearly its way, ties
-    broken to the right of it (both drones of a head-on pair then pass on their right); when it
-    wants to nearly stop, the nearest. With none inside, the nearest of all. Pointing rather than
-    nearest because the codes move at full speed: a sidestep is then further from a slightly
-    deflected velocity than hovering is, and nearest alone would hover in front of every conflict.
-    `clear` (per code; default all): codes whose step ends clear of static obstacles; the others
-    are never chosen (ORCA here knows only drones, the map knows the walls), unless none is clear."""
-    distance = np.linalg.norm(candidates - wanted, axis=1)
-    clear = np.ones(len(candidates), dtype=bool) if clear is None or not np.any(clear) else np.asarray(clear)
-    allowed = clear & np.array([all(plane.violation(c[:2]) <= 1e-9 for plane in planes) for c in candidates])
-    if not allowed.any():
-        return int(np.argmin(np.where(clear, distance, np.inf)))
-    norm = float(np.linalg.norm(wanted))
-    if norm < 0.5 * speed:
-        return int(np.argmin(np.where(allowed, distance, np.inf)))
-    lengths = np.linalg.norm(candidates, axis=1)
-    moving = allowed & (lengths > 1e-9)
-    if not moving.any():
-        return int(np.argmin(np.where(allowed, distance, np.inf)))
-    unit = wanted / norm
-    cosine = candidates @ unit / np.maximum(lengths, 1e-9)
-    right = -(unit[0] * candidates[:, 1] - unit[1] * candidates[:, 0]) / np.maximum(lengths, 1e-9)
-    return int(np.argmax(np.where(moving, cosine + 1e-6 * right, -np.inf)))
-
-
-def orca_policy(world: str | Path, settings: OrcaSettings = OrcaSettings()) -> OrcaPolicy:
-    """The ORCA policy of the scenario file `world`."""
-    return OrcaPolicy(load_scenario(world), settings)
+def orca_policy(world: str | Path, settings: OrcaSettings | None = None) -> Callable[[np.ndarray], int]:
+    """The ORCA policy of the scenario file `world`: the travel-frame one (`orca_travel`) when
+    its observation is agent-relative (`travel_goal_offset`, `travel_velocity`,
+    `travel_others`), else the world-frame one (position, velocity, own_id, transponder);
+    `settings` None: each one's own defaults."""
+    scenario = load_scenario(world)
+    if reads_travel_frame(scenario):
+        return TravelOrcaPolicy(scenario, settings)
+    return OrcaPolicy(scenario, settings)
