@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "train",
     "sweep",
     "eval",
+    "eval_encounters",
     "transfer",
     "lr_probe",
     "curriculum",
