@@ -208,3 +208,10 @@ def test_orca_flies_three_drones_converging_each_on_its_own_observation() -> Non
     assert all(r.drones == 3 for r in records)
     converging = [r for r in records if r.encounter.startswith("converging")]
     assert not any(r.collision for r in converging)  # ORCA keeps three converging drones apart
+
+
+def test_eval_encounters_refuses_a_world_without_encounters_and_a_call_without_policy(capsys) -> None:
+    assert cli(["eval-encounters", "--world", "two_drones_empty", "--per-type", "1", "--orca"]) == 2
+    assert "no world.encounter: a per-type evaluation needs an encounter family" in capsys.readouterr().err
+    assert cli(["eval-encounters", "--world", "encounters", "--per-type", "1"]) == 2
+    assert "name at least one policy" in capsys.readouterr().err
