@@ -94,6 +94,22 @@ def test_one_task_gives_one_observation_space_for_two_and_four_drones() -> None:
         four.close()
 
 
+@pytest.mark.parametrize("family", ["encounters", "encounters_heldout_converging"])
+def test_gymnasium_check_env_passes_with_two_and_four_drones(family: str) -> None:
+    """The single-agent env (drone0 learning among the others) has the same 60 inputs too; the
+    PettingZoo API test runs on both files in tests/test_encounters.py."""
+    from gymnasium.utils.env_checker import check_env
+
+    from sitl_bridge.envs import make_env
+
+    env = make_env(WORLDS / f"{family}.yaml", seed=0)
+    try:
+        check_env(env, skip_render_check=True)
+        assert env.observation_space.shape == (60,)
+    finally:
+        env.close()
+
+
 def _converging_env(seed: int):
     env = make_parallel_env(WORLDS / "encounters_converging.yaml", seed=0)
     obs, infos = env.reset(seed=seed)
