@@ -231,3 +231,27 @@ def test_eval_encounters_refuses_a_world_without_encounters_and_a_call_without_p
     assert "no world.encounter: a per-type evaluation needs an encounter family" in capsys.readouterr().err
     assert cli(["eval-encounters", "--world", "encounters", "--per-type", "1"]) == 2
     assert "name at least one policy" in capsys.readouterr().err
+
+
+def test_a_network_trained_on_two_drones_flies_four_in_the_per_type_table(tmp_path: Path, capsys) -> None:
+    """One network for the family: trained (briefly) on the two-drone file, flown per type on the
+    four-drone held-out file; a network of another input size is a one-line error."""
+    out = tmp_path / "runs"
+    assert cli(["train", str(WORLDS / "encounters.yaml"), "--episodes", "2", "--out", str(out), "--batch-size", "16",
+                "--layers", "2", "--hidden-units", "16", "--eval-every", "0", "--eval-episodes", "1",
+                "--no-progress"]) == 0
+    (run,) = [p for p in out.iterdir() if p.is_dir()]
+    table = tmp_path / "table.json"
+    assert cli(["eval-encounters", "--world", "encounters_heldout_converging", "--per-type", "1",
+                "--checkpoint", str(run), "--json", str(table)]) == 0
+    report = json.loads(table.read_text())
+    assert {r["encounter"] for r in report["rows"]} == {"bottleneck", "converging", "converging, late entry"}
+    assert all(r["drones"] == 4 for r in report["episodes"])
+    capsys.readouterr()
+    small = REPO / "worlds" / "two_drones_empty_relative.yaml"
+    assert cli(["train", str(small), "--episodes", "1", "--out", str(tmp_path / "small"), "--batch-size", "16",
+                "--layers", "2", "--hidden-units", "16", "--eval-every", "0", "--eval-episodes", "1",
+                "--no-progress"]) == 0
+    (small_run,) = list((tmp_path / "small").iterdir())
+    assert cli(["eval-encounters", "--world", "encounters", "--per-type", "1", "--checkpoint", str(small_run)]) == 2
+    assert "the policy takes 13 observation values, got 60" in capsys.readouterr().err
