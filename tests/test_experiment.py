@@ -131,7 +131,7 @@ def test_trainer_keeps_the_checkpoint_of_its_best_evaluation(tmp_path) -> None:
         def episode_evaluated_at(success: float) -> int:
             trainer.run_episode()
             trainer.save_checkpoint()
-            trainer._keep_if_best(EvalResult(str(EMPTY), 1, 1, success, 0.0, 0.0, 0.0, 0.0, 0.0, None))
+            trainer.evaluator.keep_if_best(EvalResult(str(EMPTY), 1, 1, success, 0.0, 0.0, 0.0, 0.0, 0.0, None))
             return json.loads((trainer.run_dir / "best.json").read_text())["after_episodes"]
 
         assert episode_evaluated_at(0.5) == 1

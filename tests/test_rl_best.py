@@ -12,7 +12,8 @@ from test_rl_helpers import corridor_factory, tiny_config
 
 from sitl_bridge.rl.learner.checkpoint import BEST_CHECKPOINT, load_checkpoint, resolve_checkpoint
 from sitl_bridge.rl.training.run_dir import BEST_FILE, EVALS_FILE, RunSpec
-from sitl_bridge.rl.training.trainer import Trainer, selection_score
+from sitl_bridge.rl.training.run_evaluation import selection_score
+from sitl_bridge.rl.training.trainer import Trainer
 
 
 def test_best_checkpoint_is_the_best_evaluation_and_the_runs_result(tmp_path: Path) -> None:

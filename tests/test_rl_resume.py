@@ -24,8 +24,9 @@ from sitl_bridge.rl.learner.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
+from sitl_bridge.rl.training.init_from import ShapeMismatch
 from sitl_bridge.rl.training.run_dir import RunSpec
-from sitl_bridge.rl.training.trainer import ShapeMismatch, Trainer, read_run_records
+from sitl_bridge.rl.training.trainer import Trainer, read_run_records
 
 HELPER = Path(__file__).with_name("test_rl_helpers.py")
 EPISODES = 8

@@ -21,11 +21,12 @@ from test_rl_cli import (
 from test_rl_helpers import corridor_factory, tiny_config
 
 from sitl_bridge.rl.common.episode_log import read_records
+from sitl_bridge.rl.evaluation.rollout import episode_seed
 from sitl_bridge.rl.learner.checkpoint import list_checkpoints, load_checkpoint
 from sitl_bridge.rl.learner.config import TrainConfig
 from sitl_bridge.rl.learner.dqn import DQNAgent, NetworkShape
 from sitl_bridge.rl.training.run_dir import RunSpec
-from sitl_bridge.rl.training.trainer import Trainer, episode_seed, read_run_records
+from sitl_bridge.rl.training.trainer import Trainer, read_run_records
 
 EPISODES = 5  # waves of 2: episodes 0-1, 2-3, then 4 alone
 ARGS = ["--episodes", str(EPISODES), "--num-envs", "2", "--seed", "4", *TINY[:-1], "--eval-episodes", "0",

@@ -25,7 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     from sitl_bridge.rl.learner.checkpoint import CheckpointError
     from sitl_bridge.rl.training.curriculum import load_curriculum, run_curriculum
-    from sitl_bridge.rl.training.trainer import ShapeMismatch
+    from sitl_bridge.rl.training.init_from import ShapeMismatch
 
     try:
         curriculum = load_curriculum(args.file)

@@ -86,8 +86,8 @@ def main(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     # torch and the simulator load here, not when the CLI lists its commands.
     from sitl_bridge.rl.learner.checkpoint import CheckpointError
+    from sitl_bridge.rl.training.init_from import ShapeMismatch
     from sitl_bridge.rl.training.train_plan import plan_lines
-    from sitl_bridge.rl.training.trainer import ShapeMismatch
 
     try:
         trainer = _build(args)

@@ -2,7 +2,7 @@
 nearest the goal along the shortest obstacle-free path (`path_distance.PathField`).
 
 It is no policy to fly by (it ignores the drone's dynamics and the lidar), only a direction for
-exploration: `train: guided_explore_episodes` (rl/training/trainer.py) takes it for a share of the
+exploration: `train: guided_explore_episodes` (rl/training/dqn_training.py) takes it for a share of the
 exploring steps of the first episodes, so that the replay holds a goal before the value estimates
 settle on ending episodes by a crash (docs/findings.md, the early-crash study).
 """

@@ -31,9 +31,9 @@ from sitl_bridge.rl.common.atomic import atomic_write_json
 from sitl_bridge.rl.common.drones_env import scenario_env_factory
 from sitl_bridge.rl.evaluation.evaluate import evaluate_checkpoint
 from sitl_bridge.rl.learner.config import load_train_config, parse_train_node
+from sitl_bridge.rl.training.init_from import ShapeMismatch
 from sitl_bridge.rl.training.run_dir import RunSpec
 from sitl_bridge.rl.training.runs import resume_run, start_run
-from sitl_bridge.rl.training.trainer import ShapeMismatch
 
 log = logging.getLogger(__name__)
 STATE_FILE = "curriculum.json"
