@@ -79,9 +79,11 @@ def evaluate_on(env: DronesEnv, policy: Callable[[np.ndarray], int], *, world: s
     one extends: only the episodes after them are flown (greedy flights are deterministic, so
     flying those seeds again would repeat them), and the result counts all of them."""
     done = len({t.episode for t in flown})
+    goals = [t.outcome == "goal" for t in flown]  # drone-episodes so far, as the result counts them
     with Progress(episodes - done, desc, enabled=progress) as bar:
         def count(traces: list[Trace]) -> None:
-            bar.update(1, success=f"{np.mean([t.outcome == 'goal' for t in traces]):.0%}")
+            goals.extend(t.outcome == "goal" for t in traces)
+            bar.update(1, success=f"{np.mean(goals):.0%}")
             if beat is not None:
                 beat(f"{desc} {done + traces[0].episode + 1}/{episodes}")
 
