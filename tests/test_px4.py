@@ -100,10 +100,10 @@ def _stand_in(tmp_path: Path, body: str) -> Path:
     return path
 
 
-def test_death_is_reported_with_output_tail(tmp_path):
+def test_death_is_reported_with_output_tail(tmp_path, px4_instance):
     binary = _stand_in(tmp_path, 'echo "INFO  [px4] starting"\necho "ERROR [simulator] boom"\nexit 3\n')
     config = Px4Config(px4_bin=binary, run_dir=tmp_path / "run", rootfs=tmp_path, params={})
-    autopilot = Px4Autopilot(config, 3)
+    autopilot = Px4Autopilot(config, px4_instance)
     autopilot.start()
     try:
         deadline = time.monotonic() + 5
@@ -117,11 +117,11 @@ def test_death_is_reported_with_output_tail(tmp_path):
         autopilot.stop()
 
 
-def test_stop_leaves_no_process_behind(tmp_path):
+def test_stop_leaves_no_process_behind(tmp_path, px4_instance):
     # ignores SIGTERM like PX4 before its simulator connects, and has a child process
     binary = _stand_in(tmp_path, "trap '' TERM\nsleep 300 &\necho $! > child.pid\nwait\n")
     config = Px4Config(px4_bin=binary, run_dir=tmp_path / "run", rootfs=tmp_path, params={})
-    autopilot = Px4Autopilot(config, 4)
+    autopilot = Px4Autopilot(config, px4_instance)
     autopilot.start()
     pid_file = autopilot.work_dir / "child.pid"
     deadline = time.monotonic() + 5
@@ -148,10 +148,10 @@ def _gone(pid: int) -> bool:
     return False
 
 
-def test_console_log_is_capped(tmp_path):
+def test_console_log_is_capped(tmp_path, px4_instance):
     binary = _stand_in(tmp_path, "i=0\nwhile [ $i -lt 3000 ]; do echo \"line $i padding padding padding\"; i=$((i+1)); done\n")
     config = Px4Config(px4_bin=binary, run_dir=tmp_path / "run", rootfs=tmp_path, params={}, log_cap_bytes=20_000)
-    autopilot = Px4Autopilot(config, 5)
+    autopilot = Px4Autopilot(config, px4_instance)
     autopilot.start()
     deadline = time.monotonic() + 10
     while autopilot.alive and time.monotonic() < deadline:
@@ -360,7 +360,7 @@ import sys, time
 from pathlib import Path
 from sitl_bridge.autopilot.px4 import Px4Autopilot, Px4Config
 config = Px4Config(px4_bin=Path(sys.argv[1]), run_dir=Path(sys.argv[2]), rootfs=Path(sys.argv[2]), params={})
-autopilot = Px4Autopilot(config, 6)
+autopilot = Px4Autopilot(config, int(sys.argv[3]))
 autopilot.start()
 print(autopilot.pid, flush=True)
 time.sleep(60)
@@ -368,9 +368,9 @@ time.sleep(60)
 
 
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGINT])
-def test_no_orphan_when_the_owner_crashes_or_is_interrupted(tmp_path, how):
+def test_no_orphan_when_the_owner_crashes_or_is_interrupted(tmp_path, how, px4_instance):
     binary = _stand_in(tmp_path, "trap '' TERM\nwhile true; do sleep 0.05; done\n")
-    owner = subprocess.Popen([sys.executable, "-c", _OWNER, str(binary), str(tmp_path / "run")],
+    owner = subprocess.Popen([sys.executable, "-c", _OWNER, str(binary), str(tmp_path / "run"), str(px4_instance)],
                              stdout=subprocess.PIPE, text=True)
     try:
         pid = int(owner.stdout.readline())
