@@ -56,16 +56,6 @@ def test_algorithm_comes_from_the_train_section_and_the_command_line_wins(tmp_pa
     assert any(line.endswith("set them under train.ppo): gamma, layers") for line in lines)
 
 
-def test_an_sb3_run_states_each_line_of_its_plan_once(tmp_path: Path) -> None:
-    world = scenario(tmp_path, "empty.yaml", {"algorithm": "ppo", "ppo": PPO_TINY}, max_steps=4)
-    result = sitl_bridge("train", str(world), "--episodes", "1", "--eval-every", "0", "--eval-episodes", "1",
-                         "--out", str(tmp_path / "runs"), "--no-progress")
-    assert result.returncode == 0, result.stderr[-2000:]
-    plan = [line for line in result.stderr.splitlines() if line.startswith("plan: ")]
-    assert len(plan) == len(set(plan)) == 4, plan
-    assert plan.count("plan: no early stopping (stop_on_success 0): trains all 1") == 1
-
-
 def test_an_unknown_sb3_argument_is_one_line_naming_the_key(tmp_path: Path) -> None:
     world = scenario(tmp_path, "empty.yaml", {"algorithm": "ppo", "ppo": {"n_stepz": 32}})
     with pytest.raises(ConfigError, match=r"empty.yaml: train\.ppo\.n_stepz: not a PPO argument \(known: .*n_steps"):
