@@ -185,6 +185,9 @@ def test_shipped_experiments_load() -> None:
     assert stems == {"two_drones_empty_relative", "random_goal_relative"}
     assert [c.name for c in comparisons] == ["er_te_relative"]
     assert load_experiment(REPO / "experiments" / "smoke.yaml").seeds == (0, 1)
+    every_seed = load_experiment(REPO / "experiments" / "every_seed.yaml")  # its new worlds load and check too
+    assert [s.stem for s in every_seed.scenarios][:5] == ["obstacle", "two_blocks", "pillars", "offset_walls", "under_beam"]
+    assert all(s.overrides["guided_explore_episodes"] == 100 for s in every_seed.scenarios)
 
 
 def test_experiment_file_errors_are_one_line(tmp_path) -> None:
