@@ -242,22 +242,32 @@ class Px4Fleet:
             autopilot.observation.prearm_ok = False
             autopilot.observation.position_ned_m = None
 
+        waiting_for = [""]  # the last check that held the reset up, for the error (why it did not converge)
+
         def converged() -> bool:
             self.check_alive()
             if time.monotonic() > deadline:
-                raise Px4Error(f"PX4 estimate did not follow the in-place reset within {timeout_s} s")
+                raise Px4Error(f"PX4 estimate did not follow the in-place reset within {timeout_s} s "
+                               f"({waiting_for[0]})")
             for index, autopilot in enumerate(self.autopilots):
                 obs = autopilot.poll()
                 if not obs.prearm_ok or obs.velocity_ned_m_s is None:
+                    waiting_for[0] = (f"vehicle {index}: pre-arm checks {'pass' if obs.prearm_ok else 'fail'}, "
+                                      f"velocity {'reported' if obs.velocity_ned_m_s else 'not reported'}")
                     return False
-                if self.estimate_error_m(lockstep, index) > tolerance_m:
+                error_m = self.estimate_error_m(lockstep, index)
+                if error_m > tolerance_m:
+                    waiting_for[0] = f"vehicle {index}: estimate {error_m:.2f} m from the truth"
                     return False
-                if math.hypot(*obs.velocity_ned_m_s) > 0.2:
+                speed = math.hypot(*obs.velocity_ned_m_s)
+                if speed > 0.2:
+                    waiting_for[0] = f"vehicle {index}: estimated speed {speed:.2f} m/s"
                     return False
             return True
 
         if not lockstep.run_until(converged, max_seconds=max_sim_s, check_every_s=0.1):
-            raise Px4Error(f"PX4 estimate did not follow the in-place reset in {max_sim_s} s simulated")
+            raise Px4Error(f"PX4 estimate did not follow the in-place reset in {max_sim_s} s simulated "
+                           f"({waiting_for[0]})")
         return time.monotonic() - start
 
     def restart(self, lockstep: Any, reset: Callable[[], None] | None = None, *,
